@@ -1,0 +1,96 @@
+"""Rollouts on the true (simulated) system, as pure JAX (tasks.md §1, "Rollout on the true system").
+
+One ``lax.scan`` over the horizon; vmap :func:`rollout` over keys for the evaluation
+rollouts. The gymnasium environments in :mod:`pipps.tasks.envs` expose the same
+system step by step for external use; the learning code uses this function because
+it runs a whole trajectory in one compiled call.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pipps.tasks.base import Task
+
+
+class Trajectory(NamedTuple):
+    """One rollout. Transition ``t`` goes from ``states[t]`` to ``states[t+1]`` under ``actions[t]``."""
+
+    states: jax.Array  # (H+1, sim_dim) true simulator states s_0..s_H
+    observations: jax.Array  # (H+1, sim_dim) noisy observations o_t = s_t + ε_t
+    actions: jax.Array  # (H, F)
+    costs: jax.Array  # (H,) c(x(s_{t+1})) on the noise-free next state, 0 where not valid
+    valid: jax.Array  # (H,) bool: the transition happened (unicycle: before the fall)
+
+    @property
+    def total_cost(self) -> jax.Array:
+        """The return reported in the thesis' tables: the summed cost of the valid transitions."""
+        return jnp.sum(jnp.where(self.valid, self.costs, 0.0), axis=-1)
+
+
+def sample_initial_state(task: Task, key: jax.Array) -> jax.Array:
+    """s_0 ~ N(μ0, Σ0) in simulator coordinates (tasks.md §1.1)."""
+    return jax.random.multivariate_normal(
+        key, jnp.asarray(task.init_mean), jnp.asarray(task.init_cov), method="svd"
+    )
+
+
+def rollout(
+    task: Task,
+    key: jax.Array,
+    policy: Callable[[jax.Array], jax.Array] | None = None,
+    *,
+    horizon: int | None = None,
+) -> Trajectory:
+    """Run one episode on the true system (tasks.md §1).
+
+    ``policy`` maps the policy input ``x̃^o[P]`` (built from the *noisy* observation) to the
+    control; ``None`` draws i.i.d. random actions ``U[-u_rand, u_rand]`` (no squashing).
+    After the unicycle falls, the remaining transitions are marked invalid and their
+    costs are 0; the state is frozen so that nothing downstream sees a blown-up value.
+    """
+    H = task.horizon if horizon is None else int(horizon)
+    k0, k_obs, k_act = jax.random.split(key, 3)
+    s0 = sample_initial_state(task, k0)
+    noise_std = jnp.asarray(task.obs_noise_std)
+    obs_noise = noise_std * jax.random.normal(k_obs, (H + 1, task.sim_dim))
+    u_rand = jnp.asarray(task.u_rand)
+    rand_u = jax.random.uniform(k_act, (H, task.action_dim), minval=-u_rand, maxval=u_rand)
+
+    def step(carry, inp):
+        s, alive = carry
+        eps, u_random = inp
+        o = s + eps
+        if policy is None:
+            u = u_random
+        else:
+            u = policy(task.policy_input(task.sim_to_model(o)))
+        s_next = task.step(s, u)
+        fell = task.fallen(s_next) if task.fallen is not None else jnp.asarray(False)
+        valid = alive & ~fell
+        c = jnp.where(valid, task.cost(task.sim_to_model(s_next)), 0.0)
+        s_keep = jnp.where(valid, s_next, s)
+        return (s_keep, valid), (s_keep, o, u, c, valid)
+
+    (s_last, _), (states, obs, actions, costs, valid) = jax.lax.scan(
+        step, (s0, jnp.asarray(True)), (obs_noise[:H], rand_u)
+    )
+    states = jnp.concatenate([s0[None], states], axis=0)
+    obs = jnp.concatenate([obs, (s_last + obs_noise[H])[None]], axis=0)
+    return Trajectory(states, obs, actions, costs, valid)
+
+
+def training_pairs(task: Task, traj: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+    """GP training data of one trajectory (tasks.md §1.3): inputs ``[x̃^o_t[I]; u_t]``, targets ``x^o_{t+1} − x^o_t``.
+
+    Only valid transitions are returned (host-side arrays; the data set grows on the host).
+    """
+    x_obs = jax.vmap(task.sim_to_model)(traj.observations)
+    inputs = jax.vmap(task.gp_input)(x_obs[:-1], traj.actions)
+    targets = x_obs[1:] - x_obs[:-1]
+    keep = np.asarray(traj.valid)
+    return np.asarray(inputs)[keep], np.asarray(targets)[keep]
