@@ -127,16 +127,24 @@ class PilcoRBFPolicy:
 @register_dataclass
 @dataclasses.dataclass(frozen=True)
 class LinearPolicy:
-    """Linear saturated policy (tasks.md §3.7): ``u = u_max ⊙ sat(W v + b)``."""
+    """Linear saturated policy (tasks.md §3.7): ``u = u_max ⊙ sat(W v + b)``.
+
+    ``saturated=False`` gives the plain linear map ``u = W v + b`` (``u_max`` unused): the
+    linear-Gaussian test systems need it, because only then are the state distributions
+    exactly Gaussian and the exact gradient closed form.
+    """
 
     W: jax.Array  # (F, D)
     b: jax.Array  # (F,)
     u_max: tuple[float, ...] = _static()
+    saturated: bool = _static(True)
 
     def unsquashed(self, v: jax.Array) -> jax.Array:
         return self.W @ v + self.b
 
     def __call__(self, v: jax.Array) -> jax.Array:
+        if not self.saturated:
+            return self.unsquashed(v)
         return jnp.asarray(self.u_max) * saturate(self.unsquashed(v))
 
 
@@ -243,8 +251,10 @@ def init_pilco_rbf_policy(
     return PilcoRBFPolicy(centres, targets, jnp.log(jnp.asarray(ell)), u)
 
 
-def init_linear_policy(key: jax.Array, input_dim: int, u_max, *, scale: float = 0.01) -> LinearPolicy:
+def init_linear_policy(
+    key: jax.Array, input_dim: int, u_max, *, scale: float = 0.01, saturated: bool = True
+) -> LinearPolicy:
     """Unicycle initialisation (tasks.md §3.7): W ~ 0.01·N(0,1), b = 0."""
     u = _u_max_tuple(u_max)
     W = scale * jax.random.normal(key, (len(u), input_dim))
-    return LinearPolicy(W, jnp.zeros(len(u)), u)
+    return LinearPolicy(W, jnp.zeros(len(u)), u, saturated)

@@ -81,6 +81,8 @@ def test_linear_policy_formula_and_count():
     v = np.linspace(-1, 1, 10)
     pre = W @ v + np.array([0.1, -0.2])
     np.testing.assert_allclose(np.asarray(pol(jnp.asarray(v))), np.array([10, 50]) * (9 * np.sin(pre) + np.sin(3 * pre)) / 8, rtol=1e-14)
+    plain = LinearPolicy(pol.W, pol.b, pol.u_max, saturated=False)
+    np.testing.assert_allclose(np.asarray(plain(jnp.asarray(v))), pre, rtol=1e-14)
 
 
 def test_u_max_is_static_and_vmap_matches_loop():
