@@ -1,0 +1,75 @@
+"""What each particle contributes at a step: its cost for the returns and its cost gradient.
+
+The reverse sweep asks, at step t, for ``c_i`` (added to the returns ``G``) and ``∂c_i/∂x_i``
+(started down the pathwise chain). Three sources:
+
+* the plain cost: ``c(x_i)`` and ``∇c(x_i)``;
+* Gaussian shaping (estimators.md §5): with the particle fit ``μ̂ = mean_i x_i``,
+  ``Σ̂ = E[x xᵀ] − μ̂ μ̂ᵀ`` (1/P) and ``Ē = E_{N(μ̂, Σ̂)}[c]`` in closed form, the LR cost
+  ``g_i = ∂Ē/∂μ̂ · m_i + ⟨∂Ē/∂Σ̂, v_i − 2 m_i μ̂ᵀ⟩`` (``m_i = x_i − μ̂``, ``v_i = x_i x_iᵀ − E[x xᵀ]``)
+  and the RP cost gradient ``P·dĒ/dx_i = ∂Ē/∂μ̂ + 2 Sym(∂Ē/∂Σ̂) m_i``;
+* DEL (§6): with ``q = N(μ̂, Σ̂)`` (unbiased covariance) fitted pathwise,
+  ``S = (1/P) Σ_j (G_j − b) log q(x_j)`` with the samples ``x_j`` held fixed, the cost
+  gradient is ``P·∂S/∂x_i`` through the fit only.
+
+Per-particle returns are summed without the 1/P; the sweep divides at the end, so that a
+particle's gradient is ``∂G_i/∂θ`` and the estimate is their mean.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def plain_terms(cost, x: jax.Array, c: jax.Array, *, gradient: bool):
+    """(c_i, ∇c(x_i) or None, the step's objective mean_i c_i)."""
+    dc = jax.vmap(jax.grad(cost))(x) if gradient else None
+    return c, dc, jnp.mean(c)
+
+
+def particle_fit(x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(μ̂, Σ̂, E[x xᵀ]) with Σ̂ = E[x xᵀ] − μ̂ μ̂ᵀ, all 1/P (estimators.md §5)."""
+    P = x.shape[0]
+    mu = jnp.mean(x, axis=0)
+    second = x.T @ x / P
+    return mu, second - jnp.outer(mu, mu), second
+
+
+def shaping_terms(cost, x: jax.Array, *, lr_costs: bool, gradient: bool):
+    """Gaussian shaping: (g_i or None, P·dĒ/dx_i or None, Ē)."""
+    mu, cov, second = particle_fit(x)
+    expected = lambda m, S: cost.expected(m, S)[0]  # noqa: E731
+    value, (g_mu, g_cov) = jax.value_and_grad(expected, argnums=(0, 1))(mu, cov)
+    g_sym = 0.5 * (g_cov + g_cov.T)
+    m = x - mu
+    c = dc = None
+    if lr_costs:
+        quad = jnp.einsum("pd,de,pe->p", x, g_sym, x) - jnp.sum(g_sym * second)
+        c = m @ g_mu + quad - 2.0 * (m @ g_sym) @ mu
+    if gradient:
+        dc = g_mu[None, :] + 2.0 * m @ g_sym
+    return c, dc, value
+
+
+def gaussian_logpdf(x: jax.Array, mean: jax.Array, cov: jax.Array) -> jax.Array:
+    """log N(x_j | mean, cov) for rows x (P, D), by a Cholesky factor."""
+    chol = jnp.linalg.cholesky(cov)
+    sol = jax.scipy.linalg.solve_triangular(chol, (x - mean).T, lower=True)
+    D = x.shape[-1]
+    return -0.5 * jnp.sum(sol**2, axis=0) - jnp.sum(jnp.log(jnp.diag(chol))) - 0.5 * D * jnp.log(2 * jnp.pi)
+
+
+def del_gradient(x: jax.Array, returns: jax.Array, baseline: jax.Array, jitter: float = 1e-12) -> jax.Array:
+    """DEL's per-particle cost gradient P·∂S/∂x_i (estimators.md §6)."""
+    P, D = x.shape
+    advantage = jax.lax.stop_gradient(returns - baseline)
+    samples = jax.lax.stop_gradient(x)
+
+    def surrogate(xfit):
+        mu = jnp.mean(xfit, axis=0)
+        centred = xfit - mu
+        cov = centred.T @ centred / (P - 1) + jitter * jnp.eye(D)
+        return jnp.mean(advantage * gaussian_logpdf(samples, mu, cov))
+
+    return P * jax.grad(surrogate)(x)

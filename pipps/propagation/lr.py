@@ -1,0 +1,114 @@
+"""Likelihood-ratio gradients in distribution-parameter space (estimators.md §3; thesis eq. 4.2–4.3).
+
+At a step t the particles ``x_j`` were drawn from ``N(μ_j, diag(s_j²))``. The LR gradient
+with respect to each component's parameters ``ζ_i = (μ_i, s_i)`` is
+
+``γ_i = Σ_j w_ij (G_j − b_ij) ∇_{ζ_i} log p(x_j | ζ_i)``,
+
+with ``∇_μ log p = (x − μ)/s²`` and ``∇_s log p = ((x − μ)² − s²)/s³`` (diagonal Gaussian).
+
+* plain LR: ``w_ij = δ_ij`` and the leave-one-out mean baseline (exactly unbiased);
+* batch importance weighting (BIW): ``w_ij = p(x_j|ζ_i) / Σ_k p(x_j|ζ_k)``, computed in log
+  space as a softmax over ``i`` for each ``j`` — raw densities are never formed.
+
+BIW baselines: ``"previous"`` (a per-step constant from the previous optimizer iteration; unbiased),
+``"thesis"`` (eq. 4.3, an importance-weighted leave-one-out baseline per component; biased, see
+docs/estimators.md) and ``"none"``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+WEIGHTINGS = ("biw", "plain")
+BASELINES = ("previous", "thesis", "none")
+
+
+class ZetaGrad(NamedTuple):
+    """A cotangent on ζ = (μ, s), per particle."""
+
+    mean: jax.Array  # (P, D)
+    std: jax.Array  # (P, D)
+
+
+def mix(k: jax.Array, lr: jax.Array, rp: jax.Array) -> jax.Array:
+    """k·lr + (1 − k)·rp, exactly lr at k = 1 and exactly rp at k = 0 even if the other is not finite."""
+    return jnp.where(k == 1.0, lr, jnp.where(k == 0.0, rp, k * lr + (1.0 - k) * rp))
+
+
+def zeta_mix(k: jax.Array, lr: ZetaGrad, rp: ZetaGrad) -> ZetaGrad:
+    """λ = k·γ^LR + (1 − k)·γ^RP (estimators.md §4, step 7)."""
+    return ZetaGrad(mix(k, lr.mean, rp.mean), mix(k, lr.std, rp.std))
+
+
+def log_density_matrix(x: jax.Array, mean: jax.Array, std: jax.Array) -> jax.Array:
+    """L[i, j] = log N(x_j | μ_i, diag(s_i²)) up to the constant −(D/2) log 2π, shape (P, P)."""
+    diff = (x[None, :, :] - mean[:, None, :]) / std[:, None, :]
+    return -0.5 * jnp.sum(diff**2, axis=-1) - jnp.sum(jnp.log(std), axis=-1)[:, None]
+
+
+def biw_weights(x: jax.Array, mean: jax.Array, std: jax.Array) -> jax.Array:
+    """w[i, j] = p(x_j | ζ_i) / Σ_k p(x_j | ζ_k): a softmax over i of the log densities (eq. 4.2)."""
+    return jax.nn.softmax(log_density_matrix(x, mean, std), axis=0)
+
+
+def leave_one_out_mean(values: jax.Array) -> jax.Array:
+    """b_i = mean_{j≠i} values_j."""
+    P = values.shape[0]
+    return (jnp.sum(values) - values) / (P - 1)
+
+
+def thesis_baseline(weights: jax.Array, returns: jax.Array, *, tiny: float = 1e-300) -> jax.Array:
+    """Eq. 4.3: b_i = Σ_{j≠i} w_ij G_j / Σ_{j≠i} w_ij, the plain leave-one-out mean where that underflows."""
+    off = weights * (1.0 - jnp.eye(weights.shape[0], dtype=weights.dtype))
+    den = jnp.sum(off, axis=1)
+    num = off @ returns
+    ok = den > tiny
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), leave_one_out_mean(returns))
+
+
+def score_weighted(coef: jax.Array, x: jax.Array, mean: jax.Array, std: jax.Array) -> ZetaGrad:
+    """γ_i = Σ_j coef_ij ∇_{ζ_i} log p(x_j | ζ_i) for a (P, P) coefficient matrix."""
+    diff = x[None, :, :] - mean[:, None, :]  # (i, j, D)
+    first = jnp.einsum("ij,ijd->id", coef, diff)
+    second = jnp.einsum("ij,ijd->id", coef, diff**2)
+    total = jnp.sum(coef, axis=1)[:, None]
+    s2 = std**2
+    return ZetaGrad(first / s2, (second - s2 * total) / (s2 * std))
+
+
+def plain_lr(x: jax.Array, mean: jax.Array, std: jax.Array, returns: jax.Array) -> ZetaGrad:
+    """Plain LR with the leave-one-out baseline: γ_i = (G_i − b_i) ∇_{ζ_i} log p(x_i | ζ_i).
+
+    Uses the standardised noise directly: ``(x − μ)/s² = ε/s`` and ``((x−μ)² − s²)/s³ = (ε² − 1)/s``.
+    """
+    adv = (returns - leave_one_out_mean(returns))[:, None]
+    eps = (x - mean) / std
+    return ZetaGrad(adv * eps / std, adv * (eps**2 - 1.0) / std)
+
+
+def biw_lr(
+    x: jax.Array,
+    mean: jax.Array,
+    std: jax.Array,
+    returns: jax.Array,
+    baseline: str,
+    previous_baseline: jax.Array | None = None,
+) -> ZetaGrad:
+    """Batch-importance-weighted LR (eq. 4.2) with the chosen baseline (static string)."""
+    w = biw_weights(x, mean, std)
+    if baseline == "thesis":
+        b = thesis_baseline(w, returns)[:, None]  # b_ij = b_i
+    elif baseline == "previous":
+        if previous_baseline is None:
+            raise ValueError("the 'previous' baseline needs the previous iteration's mean return")
+        b = previous_baseline
+    elif baseline == "none":
+        b = 0.0
+    else:
+        raise ValueError(f"unknown baseline {baseline!r}; choose one of {BASELINES}")
+    coef = w * (returns[None, :] - b)
+    return score_weighted(coef, x, mean, std)
