@@ -134,7 +134,9 @@ def particle_step(task: Task, policy, model, config: RolloutConfig, x, eps, *, j
     std = jnp.sqrt(jnp.broadcast_to(var, mean.shape))
     jac_std = None
     if jacobian and config.model_variance:
-        jac_std = out.jac_var / (2.0 * std[..., None])
+        # ∂s/∂z = ∂v/∂z / 2s; where s = 0 the variance sits at its clamp (a minimum): slope 0
+        positive = (std > 0.0)[..., None]
+        jac_std = jnp.where(positive, out.jac_var / (2.0 * jnp.where(positive, std[..., None], 1.0)), 0.0)
     if config.resampling == "gaussian":
         x_next = gaussian_resample(mean, std, eps, config.resample_jitter)
     else:
