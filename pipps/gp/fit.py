@@ -1,0 +1,163 @@
+"""Host-level GP training entry point (tasks.md §1 step 1, §4).
+
+:func:`fit` validates the data on the host, runs one jitted program (hyperparameters, then
+FITC inducing inputs when N > threshold, then the posterior), and reports every numerical
+guard that acted, both in the returned :class:`FitInfo` and as a :class:`GPNumericsWarning`.
+The first-time initialisation and the first inducing subset are computed before that program,
+so the first and every later training with the same capacity run the same compiled program.
+"""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from typing import NamedTuple, Optional
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pipps.gp.data import check_hyper, make_data, num_real
+from pipps.gp.fitc import fitc_posterior, initial_inducing
+from pipps.gp.posterior import full_posterior
+from pipps.gp.train import fit_hyper, fit_inducing, initial_hyper
+from pipps.gp.types import FitcFitInfo, FitState, GPConfig, GPData, GPHyper, GPPosterior, HyperFitInfo
+
+
+class GPNumericsWarning(RuntimeWarning):
+    """A numerical guard (noise floor, std floor, jitter) changed what the model computes."""
+
+
+class FitInfo(NamedTuple):
+    """Everything :func:`fit` measured; arrays are on the host (numpy)."""
+
+    hyper: HyperFitInfo
+    fitc: Optional[FitcFitInfo]  # None when the full GP is used
+    posterior_jitter: np.ndarray  # (E,) jitter on K_y (full) or K_mm (FITC) in the posterior
+    sparse: bool
+    num_points: int  # real training points
+    messages: tuple[str, ...]  # the warnings emitted
+
+
+@jax.jit
+def _initial(data: GPData, config: GPConfig):
+    return initial_hyper(data, config)
+
+
+@functools.partial(jax.jit, static_argnames=("num_inducing",))
+def _initial_inducing(key, data: GPData, num_inducing: int):
+    return initial_inducing(key, data, num_inducing)
+
+
+@jax.jit
+def _train_full(data: GPData, init: GPHyper, config: GPConfig):
+    """Hyperparameters, then the full-GP posterior. One program per (capacity, E, Dz, statics)."""
+    hyper, hinfo = fit_hyper(data, init, config)
+    post, jitter, ok = full_posterior(hyper, data, config)
+    return post, hinfo, jitter, ok
+
+
+@jax.jit
+def _train_sparse(data: GPData, init: GPHyper, xu0, fitc_iters, config: GPConfig):
+    """Hyperparameters, then X_u, then the FITC posterior; first and later trainings share it."""
+    hyper, hinfo = fit_hyper(data, init, config)
+    xu, finfo = fit_inducing(data, hyper, xu0, config, fitc_iters)
+    post, jitter, ok = fitc_posterior(hyper, data, xu, config)
+    return post, hinfo, finfo, jitter, ok
+
+
+def _check_prev(prev: Optional[FitState], data: GPData, config: GPConfig) -> None:
+    if prev is None:
+        return
+    if not isinstance(prev, FitState):
+        raise ValueError(f"prev must be a FitState or None, got {type(prev).__name__}")
+    check_hyper(prev.hyper, data)
+    if prev.inducing is not None:
+        xu = np.asarray(prev.inducing)
+        want = (config.num_inducing, data.inputs.shape[1])
+        if xu.shape != want:
+            raise ValueError(f"prev.inducing has shape {xu.shape} but config/data need {want}")
+        if not np.isfinite(xu).all():
+            raise ValueError("prev.inducing contains NaN/Inf")
+
+
+def _messages(hinfo, finfo, jitter, ok, config: GPConfig, sparse: bool) -> list[str]:
+    msgs = []
+    outs = lambda b: np.nonzero(np.asarray(b))[0].tolist()  # noqa: E731
+    if outs(hinfo.noise_floored):
+        msgs.append(f"noise floor σ_n ≥ {config.noise_floor:g} acted for outputs {outs(hinfo.noise_floored)}")
+    if outs(hinfo.input_std_floored):
+        msgs.append(f"input std floor {config.input_std_floor:g} acted for (near-)constant input "
+                    f"columns {outs(hinfo.input_std_floored)}")
+    if outs(hinfo.target_std_floored):
+        msgs.append(f"target std below {config.target_std_floor:g} for outputs {outs(hinfo.target_std_floored)}: "
+                    "σ_f initialised from the targets' root mean square")
+    train_j = np.asarray(hinfo.jitter)
+    if (train_j > config.jitter).any():
+        msgs.append(f"training jitter raised above {config.jitter:g} to {train_j.tolist()} (per output)")
+    base = config.fitc_jitter if sparse else config.jitter
+    if finfo is not None and (np.asarray(finfo.jitter) > base).any():
+        msgs.append(f"FITC K_mm jitter raised above {base:g} to {np.asarray(finfo.jitter).tolist()} during training")
+    if (np.asarray(jitter) > base).any():
+        what = "K_mm" if sparse else "K + σ_n²I"
+        msgs.append(f"posterior jitter on {what} raised above {base:g} to {np.asarray(jitter).tolist()} (per output)")
+    return msgs
+
+
+def fit(
+    key: Optional[jax.Array],
+    data: GPData,
+    prev: Optional[FitState] = None,
+    config: GPConfig = GPConfig(),
+) -> tuple[GPPosterior, FitState, FitInfo]:
+    """Train the GP dynamics model on all data and build its posterior (tasks.md §4).
+
+    Args:
+      key: PRNG key for the first FITC inducing-input subset (only needed when FITC is used
+        for the first time; may be None otherwise).
+      data: the (padded) training set; validated on the host.
+      prev: the previous training's :class:`FitState` to warm-start from, or None for the
+        first-time initialisation.
+      config: settings (numbers are traced, so changing them does not recompile).
+
+    Returns:
+      (posterior, state, info): the posterior (full or FITC, same fields), the state to
+      warm-start the next training from, and diagnostics.
+
+    Raises:
+      ValueError: bad data or warm-start state (shapes, NaN/Inf, too few points, missing key).
+      FloatingPointError: a posterior Cholesky failed even with the largest jitter.
+    """
+    if not isinstance(data, GPData):
+        raise ValueError(f"data must be a GPData, got {type(data).__name__}")
+    data = make_data(data.inputs, data.targets, data.mask)
+    _check_prev(prev, data, config)
+    n = num_real(data)
+    sparse = n > config.fitc_threshold
+    if prev is None:
+        init, target_floored = _initial(data, config)
+    else:
+        init = GPHyper(*(jnp.asarray(a, jnp.float64) for a in prev.hyper))
+        target_floored = np.zeros(data.targets.shape[1], bool)
+    finfo = None
+    if sparse:
+        first = prev is None or prev.inducing is None
+        if first and key is None:
+            raise ValueError("key is required to draw the first FITC inducing inputs (N > fitc_threshold)")
+        xu0 = _initial_inducing(key, data, config.num_inducing) if first else jnp.asarray(prev.inducing, jnp.float64)
+        iters = config.fitc_first_iters if first else config.fitc_iters
+        post, hinfo, finfo, jitter, ok = _train_sparse(data, init, xu0, iters, config)
+        state = FitState(post.hyper, post.inputs)
+    else:
+        post, hinfo, jitter, ok = _train_full(data, init, config)
+        state = FitState(post.hyper, None if prev is None else prev.inducing)
+    hinfo = HyperFitInfo(*jax.device_get(tuple(hinfo)))._replace(target_std_floored=np.asarray(target_floored))
+    finfo = None if finfo is None else FitcFitInfo(*jax.device_get(tuple(finfo)))
+    jitter, ok = np.asarray(jitter), np.asarray(ok)
+    if not ok.all():
+        raise FloatingPointError(f"posterior Cholesky failed for outputs {np.nonzero(~ok)[0].tolist()} "
+                                 f"even with jitter {jitter.tolist()}")
+    msgs = _messages(hinfo, finfo, jitter, ok, config, sparse)
+    for m in msgs:
+        warnings.warn(m, GPNumericsWarning, stacklevel=2)
+    return post, state, FitInfo(hinfo, finfo, jitter, sparse, n, tuple(msgs))
