@@ -1,6 +1,7 @@
 """The custom backward pass: RP, LR, BIW-LR, TP, Gaussian shaping and DEL (thesis Alg. 5–6)."""
 
 from pipps.propagation.config import Estimator, estimator, thesis_estimator
+from pipps.propagation.fixed_seed import optimize_fixed_seed
 from pipps.propagation.estimate import Estimate, EstimatorState, estimate, init_estimator_state
 from pipps.propagation.sweep import StepDiagnostics
 from pipps.propagation.update import (
@@ -15,5 +16,5 @@ from pipps.propagation.update import (
 __all__ = [
     "Estimate", "Estimator", "EstimatorState", "PolicyOptState", "StepDiagnostics", "UpdateInfo",
     "estimate", "estimator", "init_estimator_state", "init_policy_opt_state", "make_policy_optimizer",
-    "make_policy_update", "policy_update", "thesis_estimator",
+    "make_policy_update", "optimize_fixed_seed", "policy_update", "thesis_estimator",
 ]
