@@ -1,0 +1,36 @@
+"""The PILCO moment-matching baseline (tasks.md §5; thesis Algorithm 2). See docs/pilco.md.
+
+Closed-form blocks (each returns ``GaussianMap(M, S, C)`` in the §0 convention):
+:func:`saturation_moments` (§5.3), :func:`control_moments` / :func:`unsquashed_moments`
+(§5.2 + §5.3), :func:`gp_moments` (§5.4, full GP and FITC alike), :func:`dynamics_moments`
+(GP or any model with ``moments``). Assembly: :func:`propagate` (§5.5), :func:`objective`
+(``J = Σ_{t=1..H} E[c(x_t)]``, one ``lax.scan``), :func:`trajectory`. Policy search:
+:func:`optimize_policy`.
+"""
+
+from pipps.pilco.controller import (
+    RBF_SECOND_MOMENT_JITTER,
+    control_moments,
+    linear_controller_moments,
+    rbf_controller_moments,
+    unsquashed_moments,
+)
+from pipps.pilco.gp_moments import gp_moments, se_moments
+from pipps.pilco.optimize import PILCO_BUDGETS, PolicySearchConfig, optimize_policy, pilco_budget
+from pipps.pilco.propagate import (
+    PilcoTrajectory,
+    dynamics_moments,
+    objective,
+    propagate,
+    state_control_joint,
+    step_moments,
+    trajectory,
+)
+from pipps.pilco.saturation import saturation_moments
+
+__all__ = [
+    "PILCO_BUDGETS", "PilcoTrajectory", "PolicySearchConfig", "RBF_SECOND_MOMENT_JITTER",
+    "control_moments", "dynamics_moments", "gp_moments", "linear_controller_moments", "objective",
+    "optimize_policy", "pilco_budget", "propagate", "rbf_controller_moments", "saturation_moments",
+    "se_moments", "state_control_joint", "step_moments", "trajectory", "unsquashed_moments",
+]
