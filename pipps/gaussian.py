@@ -41,6 +41,17 @@ def linear_map(
     return GaussianMap(M, 0.5 * (S + S.T), L.T)
 
 
+def _q_expm1(lq: jax.Array, q: jax.Array, v: jax.Array) -> jax.Array:
+    """q·(e^v − 1) for q = e^{lq}: by expm1 where |v| < 1 (accuracy for small covariances),
+    else as e^{lq + v} − q, which cannot overflow because |Σij| ≤ (Σii + Σjj)/2 makes lq + v ≤ 0.
+    (q·expm1(v) alone is 0·inf = NaN once a variance exceeds ~709.) The branches take safe
+    inputs so that neither produces a NaN gradient where it is not selected."""
+    small = jnp.abs(v) < 1.0
+    v_small = jnp.where(small, v, 0.0)
+    v_large = jnp.where(small, 0.0, v)
+    return jnp.where(small, q * jnp.expm1(v_small), jnp.exp(lq + v_large) - q)
+
+
 def trig_moments(mean: jax.Array, cov: jax.Array, angle_idx: Sequence[int]) -> GaussianMap:
     """Moments of ``[sin v_a, cos v_a]`` (a in angle_idx, pairs in (sin, cos) order), §5.1.
 
@@ -56,9 +67,10 @@ def trig_moments(mean: jax.Array, cov: jax.Array, angle_idx: Sequence[int]) -> G
     damp = jnp.exp(-half_var)
     e_sin, e_cos = damp * jnp.sin(mu), damp * jnp.cos(mu)
 
-    q = jnp.exp(-(half_var[:, None] + half_var[None, :]))  # q = e^{-(Σii+Σjj)/2}
-    ep = q * jnp.expm1(V)  # e⁺ − q, accurate for small Σij
-    em = q * jnp.expm1(-V)  # e⁻ − q
+    lq = -(half_var[:, None] + half_var[None, :])
+    q = jnp.exp(lq)  # q = e^{-(Σii+Σjj)/2}
+    ep = _q_expm1(lq, q, V)  # e⁺ − q
+    em = _q_expm1(lq, q, -V)  # e⁻ − q
     diff = mu[:, None] - mu[None, :]
     summ = mu[:, None] + mu[None, :]
     ss = 0.5 * (ep * jnp.cos(diff) - em * jnp.cos(summ))  # Cov[sin v_i, sin v_j]
