@@ -44,7 +44,6 @@ from pipps.particles.forward import RolloutConfig, sample_noise
 from pipps.policies import LinearPolicy
 from pipps.propagation.config import Estimator
 from pipps.propagation.estimate import EstimatorState, estimate, init_estimator_state
-from pipps.systems.linear_gaussian import _frozen
 from pipps.tasks.base import Task
 
 
@@ -83,6 +82,16 @@ def _no_true_system(s, u):
     raise NotImplementedError(
         "the kicked-rotor task has no true-system ODE: its dynamics are the KickedRotorModel itself"
     )
+
+
+def _frozen(a, shape, name) -> np.ndarray:
+    arr = np.array(a, dtype=np.float64)
+    if arr.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite")
+    arr.setflags(write=False)
+    return arr
 
 
 def make_kicked_rotor_task(
