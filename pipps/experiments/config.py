@@ -1,0 +1,303 @@
+"""Experiment configuration: one flat, validated, serialisable record per experiment.
+
+An :class:`ExperimentConfig` holds every setting of one episodic learning experiment
+(experiments.md "Episodic learning protocol" and "Resolved choices"). It is built by
+:func:`resolve_config` from a preset and overrides, validated at once (a bad value raises
+:class:`ConfigError` naming the setting), and stored verbatim in the HDF5 result as
+attributes, so a result file says exactly what produced it.
+
+Presets:
+
+* ``thesis`` — the thesis protocol (§4.5.3): 1 + 15 trials (cart-pole) or 5 + 30 (unicycle),
+  P = 300 particles, 600 policy evaluations per trial, the normalized momentum step
+  (α = 5·10⁻⁴, γ = 0.9), 50-centre RBF policy initialised at the start distribution, the
+  thesis' own estimator choices (eq. 4.3 baseline, same-batch k_LR), 30 evaluation rollouts.
+* ``pilco`` — the PILCO MATLAB task defaults (tasks.md §2–3) with the library's unbiased
+  estimator choices.
+* ``quick`` — the thesis protocol shrunk for a few-minute CPU run: fewer trials, particles
+  and policy evaluations, and the documented departure of experiments.md: RBF centres spread
+  uniformly over the state box and wider initial length-scales.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from typing import Any
+
+PRESET_NAMES = ("thesis", "pilco", "quick")
+TASKS = ("cartpole_swingup", "cartpole_balance", "unicycle")
+
+#: Methods, with the thesis' table name. Each maps to an optimizer kind and an estimator.
+METHODS: dict[str, str] = {
+    "pilco": "PILCO",
+    "rp": "RP",
+    "rp_fs": "RP_FS",
+    "gr": "GR",
+    "gr_fs": "GR_FS",
+    "lr": "LR",
+    "tp": "TP",
+    "tp-sf": "TP−σ_f",
+    "tp+sn": "TP+σ_n",
+    "gtp": "GTP",
+    "glr": "GLR",
+    "gtp+sn": "GTP+σ_n",
+    "del": "DEL",
+}
+
+#: The quick preset's RBF centre box over [x_c, v, ω, θ] (experiments.md "quick").
+QUICK_CENTRE_LOW = (-1.0, -3.0, -8.0, -math.pi / 2)
+QUICK_CENTRE_HIGH = (1.0, 3.0, 8.0, 3 * math.pi / 2)
+QUICK_LOG_LAMBDA = (0.0, 2.0, 4.0, 2.0)
+
+
+class ConfigError(ValueError):
+    """A configuration value is invalid; the message names the setting."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ExperimentConfig:
+    """Every setting of one experiment. See the module docstring for the presets.
+
+    ``None`` in a field means "the task's own value" where noted.
+    """
+
+    # what is learned
+    task: str = "cartpole_swingup"
+    preset: str = "thesis"  # the task preset (``thesis``/``pilco``; ``quick`` uses the thesis task)
+    cost: str | None = None  # angle | tip | unicycle; None: the task preset's default
+    cost_scale: float = 1.0  # Q multiplier of the Angle Cost (the thesis' "Q × 0.01" cell)
+    k: float = 1.0  # observation-noise variance multiplier
+    method: str = "tp"
+    seed: int = 0
+    # the protocol
+    num_random: int = 1  # random (exploration) trials
+    num_learned: int = 15  # learned trials
+    horizon: int | None = None  # None: the task preset's horizon
+    eval_rollouts: int = 30  # evaluation rollouts per trial (reporting only)
+    success_threshold: float = 15.0  # cart-pole: final evaluated return below this
+    upright_fraction: float = 0.95  # unicycle: fraction of evaluation rollouts that must stay upright
+    # the policy
+    policy: str = "rbf"  # rbf (thesis), pilco_rbf, linear
+    num_basis: int = 50
+    policy_init: str = "start"  # start: centres ~ start distribution; uniform: the quick box
+    log_lambda_init: tuple[float, ...] = (0.0,)  # one value or one per policy input
+    weight_scale: float = 0.1
+    # particle methods
+    num_particles: int = 300
+    policy_evals: int = 600  # policy evaluations (gradient estimates, or QN evaluations) per trial
+    learning_rate: float = 5e-4
+    momentum: float = 0.9
+    estimator_choices: str = "thesis"  # thesis: eq. 4.3 baseline and same-batch k_LR; library: unbiased
+    noise_boost_tp: float = 100.0  # +σ_n factor on σ_n² for TP
+    noise_boost_gtp: float = 25.0  # +σ_n factor for GTP
+    progress_chunk: int = 50  # policy steps per compiled call (progress granularity)
+    # PILCO
+    pilco_linesearches: int | None = None  # None: PILCO's budget for the task (tasks.md §2, §3.7)
+    # GP model
+    gp_chunk: int = 100  # data padded to multiples of this (few compiled sizes)
+    gp_max_iters: int = 300
+    fitc_threshold: int = 300
+    num_inducing: int = 300
+    fitc_iters: int = 100
+    fitc_first_iters: int = 300
+    # what is stored
+    store_particles: int = 30  # predicted particle trajectories stored per trial (for plots)
+
+    # -- derived -----------------------------------------------------------------------------
+    @property
+    def num_trials(self) -> int:
+        return self.num_random + self.num_learned
+
+    @property
+    def is_pilco(self) -> bool:
+        return self.method == "pilco"
+
+    @property
+    def fixed_seed(self) -> bool:
+        return self.method.endswith("_fs")
+
+    @property
+    def table_name(self) -> str:
+        return METHODS[self.method]
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def replace(self, **changes) -> "ExperimentConfig":
+        return resolve_overrides(self, changes)
+
+    def __post_init__(self):
+        validate(self)
+
+
+def _field_types() -> dict[str, Any]:
+    return typing.get_type_hints(ExperimentConfig)
+
+
+def _need(cond: bool, name: str, msg: str) -> None:
+    if not cond:
+        raise ConfigError(f"{name}: {msg}")
+
+
+def validate(c: ExperimentConfig) -> None:
+    """Raise :class:`ConfigError` naming the first bad setting."""
+    from pipps.tasks.presets import PRESETS, TASK_COSTS
+
+    _need(c.task in TASKS, "task", f"unknown task {c.task!r}; choose one of {', '.join(TASKS)}")
+    _need(c.preset in PRESETS, "preset", f"unknown task preset {c.preset!r}; choose one of {', '.join(PRESETS)}")
+    _need(c.method in METHODS, "method", f"unknown method {c.method!r}; choose one of {', '.join(METHODS)}")
+    if c.cost is not None:
+        _need(c.cost in TASK_COSTS[c.task], "cost",
+              f"unknown cost {c.cost!r} for {c.task}; choose one of {', '.join(TASK_COSTS[c.task])}")
+    finite = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
+    _need(finite(c.k) and c.k >= 0, "k", f"the noise multiplier must be a finite number >= 0, got {c.k!r}")
+    _need(finite(c.cost_scale) and c.cost_scale > 0, "cost_scale", f"must be > 0, got {c.cost_scale!r}")
+    for name in ("num_learned", "eval_rollouts", "num_basis", "policy_evals", "gp_chunk", "gp_max_iters",
+                 "num_inducing", "fitc_iters", "fitc_first_iters", "progress_chunk"):
+        v = getattr(c, name)
+        _need(isinstance(v, int) and not isinstance(v, bool) and v >= 1, name, f"must be an integer >= 1, got {v!r}")
+    for name in ("num_random", "store_particles", "seed"):
+        v = getattr(c, name)
+        _need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, name, f"must be an integer >= 0, got {v!r}")
+    _need(isinstance(c.num_particles, int) and c.num_particles >= 2, "num_particles",
+          f"must be an integer >= 2 (particles estimate variances), got {c.num_particles!r}")
+    _need(c.num_random >= 1, "num_random", "at least one random trial is needed to train the first model")
+    if c.horizon is not None:
+        _need(isinstance(c.horizon, int) and c.horizon >= 1, "horizon", f"must be an integer >= 1, got {c.horizon!r}")
+    _need(finite(c.success_threshold), "success_threshold", f"must be finite, got {c.success_threshold!r}")
+    _need(finite(c.upright_fraction) and 0 < c.upright_fraction <= 1, "upright_fraction",
+          f"must lie in (0, 1], got {c.upright_fraction!r}")
+    _need(c.policy in ("rbf", "pilco_rbf", "linear"), "policy", f"choose rbf, pilco_rbf or linear, got {c.policy!r}")
+    _need(c.policy_init in ("start", "uniform"), "policy_init", f"choose start or uniform, got {c.policy_init!r}")
+    _need(c.policy_init != "uniform" or c.task != "unicycle", "policy_init", "uniform centres are a cart-pole setting")
+    _need(len(c.log_lambda_init) >= 1 and all(finite(v) for v in c.log_lambda_init), "log_lambda_init",
+          f"must be one or more finite numbers, got {c.log_lambda_init!r}")
+    _need(finite(c.weight_scale) and c.weight_scale >= 0, "weight_scale", f"must be >= 0, got {c.weight_scale!r}")
+    _need(finite(c.learning_rate) and c.learning_rate > 0, "learning_rate", f"must be > 0, got {c.learning_rate!r}")
+    _need(finite(c.momentum) and 0 <= c.momentum < 1, "momentum", f"must lie in [0, 1), got {c.momentum!r}")
+    _need(c.estimator_choices in ("thesis", "library"), "estimator_choices",
+          f"choose thesis or library, got {c.estimator_choices!r}")
+    for name in ("noise_boost_tp", "noise_boost_gtp"):
+        v = getattr(c, name)
+        _need(finite(v) and v > 0, name, f"must be > 0, got {v!r}")
+    if c.pilco_linesearches is not None:
+        _need(isinstance(c.pilco_linesearches, int) and c.pilco_linesearches >= 1, "pilco_linesearches",
+              f"must be an integer >= 1, got {c.pilco_linesearches!r}")
+    _need(c.num_inducing <= c.fitc_threshold, "num_inducing",
+          f"{c.num_inducing} exceeds fitc_threshold={c.fitc_threshold}")
+
+
+# -- presets ---------------------------------------------------------------------------------
+
+
+def preset_values(preset: str, task: str) -> dict[str, Any]:
+    """The settings a preset fixes for a task (before the user's overrides)."""
+    if preset not in PRESET_NAMES:
+        raise ConfigError(f"preset: unknown preset {preset!r}; choose one of {', '.join(PRESET_NAMES)}")
+    if task not in TASKS:
+        raise ConfigError(f"task: unknown task {task!r}; choose one of {', '.join(TASKS)}")
+    unicycle = task == "unicycle"
+    v: dict[str, Any] = dict(task=task)
+    if preset in ("thesis", "quick"):
+        v.update(preset="thesis", estimator_choices="thesis")
+        if unicycle:
+            v.update(num_random=5, num_learned=30, policy="linear")
+        else:
+            v.update(num_random=1, num_learned=15, policy="rbf", num_basis=50)
+    else:  # pilco task defaults (tasks.md §2-3), library estimators
+        v.update(preset="pilco", estimator_choices="library")
+        if unicycle:
+            v.update(num_random=10, num_learned=40, policy="linear")
+        else:
+            v.update(num_random=1, num_learned=15, policy="pilco_rbf", num_basis=10)
+    if preset == "quick":
+        if unicycle:
+            v.update(num_random=3, num_learned=5, num_particles=50, policy_evals=150, eval_rollouts=10,
+                     learning_rate=5e-3, gp_max_iters=100)
+        else:
+            # experiments.md "quick": centres spread over the state box, wider length-scales, and
+            # a step size that can move the weights in 300 evaluations (α/(1−γ) per iteration).
+            v.update(num_learned=5, num_particles=50, policy_evals=300, eval_rollouts=10,
+                     policy_init="uniform", log_lambda_init=QUICK_LOG_LAMBDA, learning_rate=5e-3,
+                     gp_max_iters=100)
+    return v
+
+
+def _coerce(name: str, value: Any, hint: Any) -> Any:
+    """Convert a CLI string (or a Python value) to the field's type, or raise ConfigError."""
+    if not isinstance(value, str):
+        if isinstance(value, list):
+            return tuple(value)
+        return value
+    text = value.strip()
+    origin_args = typing.get_args(hint)
+    optional = type(None) in origin_args
+    if optional and text.lower() in ("none", "null", ""):
+        return None
+    base = [a for a in origin_args if a is not type(None)] or [hint]
+    kinds = base if typing.get_origin(hint) is not tuple else [hint]
+    for kind in kinds:
+        try:
+            if kind is bool:
+                if text.lower() in ("1", "true", "yes", "on"):
+                    return True
+                if text.lower() in ("0", "false", "no", "off"):
+                    return False
+                raise ValueError
+            if kind is int:
+                return int(text)
+            if kind is float:
+                return float(text)
+            if typing.get_origin(kind) is tuple:
+                return tuple(float(p) for p in text.split(",") if p.strip())
+            if kind is str:
+                return text
+        except ValueError:
+            continue
+    raise ConfigError(f"{name}: cannot read {value!r} as {hint}")
+
+
+def resolve_overrides(base: ExperimentConfig | dict, overrides: dict[str, Any]) -> ExperimentConfig:
+    """``base`` with ``overrides`` applied (strings are converted to the field's type)."""
+    hints = _field_types()
+    values = base.to_dict() if isinstance(base, ExperimentConfig) else dict(base)
+    for name, value in overrides.items():
+        key = name.replace("-", "_")
+        if key not in hints:
+            raise ConfigError(f"{name}: unknown setting; valid settings: {', '.join(sorted(hints))}")
+        values[key] = _coerce(key, value, hints[key])
+    for key in ("log_lambda_init",):
+        if key in values and not isinstance(values[key], tuple):
+            v = values[key]
+            values[key] = tuple(v) if isinstance(v, (list, tuple)) else (float(v),)
+    return ExperimentConfig(**values)
+
+
+def resolve_config(preset: str = "thesis", task: str = "cartpole_swingup", **overrides) -> ExperimentConfig:
+    """The configuration of ``preset`` for ``task`` with ``overrides`` (validated).
+
+    Example: ``resolve_config("thesis", "cartpole_swingup", method="pilco", k=4, seed=3)``.
+    """
+    return resolve_overrides(preset_values(preset, task), overrides)
+
+
+def from_dict(d: dict[str, Any]) -> ExperimentConfig:
+    """Rebuild a stored configuration (HDF5 attributes give numpy scalars and arrays)."""
+    hints = _field_types()
+    values = {}
+    for key, hint in hints.items():
+        if key not in d:
+            continue
+        v = d[key]
+        if hasattr(v, "tolist"):
+            v = v.tolist()
+        if isinstance(v, bytes):
+            v = v.decode()
+        if isinstance(v, str) and v == "__none__":
+            v = None
+        if isinstance(v, list):
+            v = tuple(v)
+        values[key] = v
+    return ExperimentConfig(**values)

@@ -1,0 +1,377 @@
+"""The episodic learning loop (thesis Algorithm 1, §4.5.3; experiments.md "Episodic learning protocol").
+
+``run_experiment(cfg)`` runs ``num_random`` random trials, then ``num_learned`` times: train one
+GP per state dimension on all data → optimise the policy on the model with the chosen method →
+run one trial on the true system with the policy and append its transitions. After every trial
+the current policy is evaluated by ``eval_rollouts`` extra true-system rollouts that are never
+used for learning. Success is judged on the final trial's evaluation (:func:`judge_success`).
+
+I/O stays outside: the loop reports through two callbacks, ``progress(event)`` for a display and
+``on_trial(result)`` after every finished trial (the CLI writes the HDF5 file there, so a run that
+fails part-way keeps every trial it finished). Each compiled program is built once per experiment
+and reused across trials; data are padded to multiples of ``gp_chunk`` so the programs compile
+once per capacity, not once per trial.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from pipps.experiments.config import QUICK_CENTRE_HIGH, QUICK_CENTRE_LOW, ExperimentConfig
+from pipps.experiments.methods import particle_method
+from pipps.gp import FitState, GPConfig, fit, make_data, pad_to_capacity
+from pipps.policies import init_linear_policy, init_pilco_rbf_policy, init_rbf_policy, init_rbf_policy_uniform
+from pipps.rollout import rollout, training_pairs
+from pipps.tasks.base import Task
+from pipps.tasks.presets import make_task
+
+Progress = Callable[[dict[str, Any]], None]
+
+
+@dataclasses.dataclass
+class TrialResult:
+    """One trial: what was run on the true system, how the policy was found, how it evaluates.
+
+    Array shapes: H steps, S simulator dims, F controls, R evaluation rollouts, n policy steps,
+    T planning horizon, D model dims.
+    """
+
+    index: int
+    kind: str  # "random" or "learned"
+    states: np.ndarray  # (H+1, S) the trial's true states
+    observations: np.ndarray  # (H+1, S) what the learner saw
+    actions: np.ndarray  # (H, F)
+    costs: np.ndarray  # (H,) true cost of each transition (0 after a fall)
+    valid: np.ndarray  # (H,) bool
+    eval_returns: np.ndarray  # (R,) evaluation returns (fallen steps charged cost 1)
+    eval_upright: np.ndarray  # (R,) bool: the rollout never fell (always True for the cart-pole)
+    policy: np.ndarray  # (n_θ,) flattened policy parameters used for this trial (random: the initial policy)
+    timings: dict[str, float]  # seconds: gp, optimize, trial, evaluate, total
+    gp_hyper: dict[str, np.ndarray] | None = None  # log_lengthscale (E, Dz), log_signal (E,), log_noise (E,)
+    gp_info: dict[str, Any] | None = None  # sparse, num_points, objective, messages
+    opt_trace: dict[str, np.ndarray] | None = None  # per policy step (or QN line search) values
+    diagnostics: dict[str, np.ndarray] | None = None  # per time step k_LR, σ²_RP, σ²_LR (means over steps)
+    predicted: dict[str, np.ndarray] | None = None  # particles (T+1, S_p, D) or PILCO means/covs
+
+    @property
+    def eval_return(self) -> float:
+        return float(np.mean(self.eval_returns))
+
+    @property
+    def upright_fraction(self) -> float:
+        return float(np.mean(self.eval_upright))
+
+
+@dataclasses.dataclass
+class ExperimentResult:
+    config: ExperimentConfig
+    trials: list[TrialResult]
+    status: str = "running"  # running | complete | failed
+    error: str = ""
+    wall_seconds: float = 0.0
+
+    @property
+    def final_return(self) -> float:
+        return self.trials[-1].eval_return if self.trials else math.nan
+
+    @property
+    def success(self) -> bool:
+        return self.status == "complete" and judge_success(self.config, self.trials[-1])
+
+
+def judge_success(cfg: ExperimentConfig, trial: TrialResult) -> bool:
+    """experiments.md "Success": cart-pole, the final evaluated return is below the threshold;
+    unicycle, at least ``upright_fraction`` of the evaluation rollouts stay upright for the episode."""
+    if cfg.task == "unicycle":
+        return trial.upright_fraction >= cfg.upright_fraction
+    return trial.eval_return < cfg.success_threshold
+
+
+def make_experiment_task(cfg: ExperimentConfig) -> Task:
+    """The task of an experiment (cost, noise multiplier, horizon)."""
+    overrides = {} if cfg.horizon is None else {"horizon": cfg.horizon}
+    cost = cfg.cost
+    if cfg.cost_scale != 1.0:
+        import pipps.costs
+
+        if (cost or "angle") != "angle" or cfg.task == "unicycle":
+            raise ValueError("cost_scale: only the cart-pole Angle Cost takes a scale")
+        cost = pipps.costs.cartpole_angle_cost(scale=cfg.cost_scale)
+    return make_task(cfg.task, preset=cfg.preset, k=cfg.k, cost=cost, **overrides)
+
+
+def policy_start_moments(task: Task) -> tuple[np.ndarray, np.ndarray]:
+    """The planning start distribution in policy-input coordinates (trig-augmented where needed)."""
+    mean, cov = np.asarray(task.model_init_mean), np.asarray(task.model_init_cov)
+    if task.angle_idx:
+        from pipps.gaussian import trig_augment
+
+        m, c, _ = trig_augment(jnp.asarray(mean), jnp.asarray(cov), task.angle_idx)
+        mean, cov = np.asarray(m), np.asarray(c)
+    idx = np.asarray(task.policy_input_idx)
+    return mean[idx], cov[np.ix_(idx, idx)]
+
+
+def init_policy(key: jax.Array, cfg: ExperimentConfig, task: Task):
+    """The initial policy (experiments.md "Resolved choices"; the ``quick`` departure)."""
+    d = task.policy_input_dim
+    lam = np.asarray(cfg.log_lambda_init, dtype=float)
+    if lam.size not in (1, d):
+        raise ValueError(f"log_lambda_init: needs 1 or {d} values for this task's policy input, got {lam.size}")
+    if cfg.policy == "linear":
+        return init_linear_policy(key, d, task.u_max)
+    mean, cov = policy_start_moments(task)
+    if cfg.policy == "pilco_rbf":
+        return init_pilco_rbf_policy(key, cfg.num_basis, mean, cov, task.u_max)
+    if cfg.policy_init == "uniform":
+        if d != len(QUICK_CENTRE_LOW):
+            raise ValueError("policy_init=uniform needs the raw 4-dim cart-pole policy input (thesis preset)")
+        return init_rbf_policy_uniform(key, cfg.num_basis, QUICK_CENTRE_LOW, QUICK_CENTRE_HIGH, task.u_max,
+                                       log_lambda=lam, weight_scale=cfg.weight_scale)
+    return init_rbf_policy(key, cfg.num_basis, mean, cov, task.u_max, log_lambda=lam, weight_scale=cfg.weight_scale)
+
+
+def gp_config(cfg: ExperimentConfig) -> GPConfig:
+    return GPConfig(max_iters=cfg.gp_max_iters, fitc_threshold=cfg.fitc_threshold, num_inducing=cfg.num_inducing,
+                    fitc_iters=cfg.fitc_iters, fitc_first_iters=cfg.fitc_first_iters)
+
+
+class _Programs:
+    """The compiled pieces of one experiment, built once and reused across trials."""
+
+    def __init__(self, cfg: ExperimentConfig, task: Task):
+        self.cfg, self.task = cfg, task
+        horizon = task.horizon
+
+        def evaluate(keys, policy):
+            trajs = jax.vmap(lambda k: rollout(task, k, policy))(keys)
+            fallen_steps = horizon - jnp.sum(trajs.valid, axis=-1)
+            return trajs.total_cost + fallen_steps, jnp.all(trajs.valid, axis=-1)
+
+        def evaluate_random(keys):
+            trajs = jax.vmap(lambda k: rollout(task, k, None))(keys)
+            fallen_steps = horizon - jnp.sum(trajs.valid, axis=-1)
+            return trajs.total_cost + fallen_steps, jnp.all(trajs.valid, axis=-1)
+
+        self.evaluate = jax.jit(evaluate)
+        self.evaluate_random = jax.jit(evaluate_random)
+        self.trial = jax.jit(lambda key, policy: rollout(task, key, policy))
+        self.trial_random = jax.jit(lambda key: rollout(task, key, None))
+        self.optimizer = _make_optimizer(cfg, task)
+
+
+def _make_optimizer(cfg: ExperimentConfig, task: Task):
+    """``optimize(key, policy, model, progress) -> (policy, trace dict, diagnostics dict, predicted dict)``."""
+    if cfg.is_pilco:
+        return _pilco_optimizer(cfg, task)
+    if cfg.fixed_seed:
+        return _fixed_seed_optimizer(cfg, task)
+    return _stochastic_optimizer(cfg, task)
+
+
+def _particle_prediction(task: Task, rcfg, store: int):
+    from pipps.particles.forward import particle_rollout, sample_noise
+
+    @jax.jit
+    def predict(key, policy, model):
+        rec = particle_rollout(task, policy, model, sample_noise(key, task, rcfg), rcfg, jacobian=False)
+        xs = jnp.concatenate([rec.x[:1], rec.x_next], axis=0)  # (T+1, P, D)
+        return xs[:, :store], jnp.mean(rec.cost, axis=1)
+
+    def run(key, policy, model):
+        xs, cost = predict(key, policy, model)
+        return {"particles": np.asarray(xs), "cost_mean": np.asarray(cost)}
+
+    return run
+
+
+def _stochastic_optimizer(cfg: ExperimentConfig, task: Task):
+    from pipps.optimizers.normalized import normalized_momentum
+    from pipps.propagation.update import init_policy_opt_state, make_policy_optimizer
+
+    rcfg, est = particle_method(cfg)
+    opt = normalized_momentum(cfg.learning_rate, cfg.momentum)
+    run = make_policy_optimizer(task, rcfg, est, opt)
+    init = jax.jit(lambda key, policy, model: init_policy_opt_state(
+        key, policy, model, task=task, config=rcfg, estimator=est, optimizer=opt))
+    predict = _particle_prediction(task, rcfg, cfg.store_particles)
+    chunk = min(cfg.progress_chunk, cfg.policy_evals)
+
+    def optimize(key, policy, model, progress: Progress):
+        k_init, k_run, k_pred = jax.random.split(key, 3)
+        state = init(k_init, policy, model)
+        infos, done, start = [], 0, time.perf_counter()
+        while done < cfg.policy_evals:
+            n = min(chunk, cfg.policy_evals - done)
+            state, info = run(jax.random.fold_in(k_run, done), state, model, num_steps=n)
+            info = jax.device_get(info)
+            infos.append(info)
+            done += n
+            progress(dict(phase="optimize", step=done, steps=cfg.policy_evals, objective=float(info.value[-1]),
+                          seconds=time.perf_counter() - start))
+        cat = lambda f: np.concatenate([f(i) for i in infos])  # noqa: E731
+        diag = lambda f: cat(lambda i: np.asarray(f(i.diagnostics)))  # noqa: E731
+        trace = {"value": cat(lambda i: i.value), "particle_objective": cat(lambda i: i.particle_objective),
+                 "grad_norm": cat(lambda i: i.grad_norm), "skipped": cat(lambda i: i.skipped)}
+        with np.errstate(all="ignore"):
+            k_lr, var_rp, var_lr = diag(lambda d: d.k_lr), diag(lambda d: d.var_rp), diag(lambda d: d.var_lr)
+            diagnostics = {
+                "k_lr": _nanmean(k_lr, 0), "var_rp": _nanmean(var_rp, 0), "var_lr": _nanmean(var_lr, 0),
+                "k_lr_per_iteration": _nanmean(k_lr, 1), "nonfinite_steps": diag(lambda d: d.nonfinite).sum(0),
+            }
+        return state.policy, trace, diagnostics, predict(k_pred, state.policy, model)
+
+    return optimize
+
+
+def _nanmean(a: np.ndarray, axis: int) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    finite = np.isfinite(a)
+    n = finite.sum(axis)
+    return np.where(n > 0, np.where(finite, a, 0.0).sum(axis) / np.maximum(n, 1), np.nan)
+
+
+def _qn_trace(trace) -> dict[str, np.ndarray]:
+    t = jax.device_get(trace)
+    n = int(t.num_linesearches) + 1
+    return {"value": np.asarray(t.values)[:n], "evaluations": np.asarray(t.evaluations)[:n],
+            "failed": np.asarray(t.failed)[:n], "stop_reason": np.asarray(t.stop_reason)}
+
+
+def _fixed_seed_optimizer(cfg: ExperimentConfig, task: Task):
+    from pipps.optimizers.quasi_newton import QuasiNewtonConfig
+    from pipps.propagation.fixed_seed import optimize_fixed_seed
+
+    rcfg, _ = particle_method(cfg)
+    qn = QuasiNewtonConfig(length=-cfg.policy_evals, max_evals_per_linesearch=30)
+    search = jax.jit(lambda key, policy, model: optimize_fixed_seed(key, policy, model, task=task, config=rcfg,
+                                                                     qn_config=qn))
+    predict = _particle_prediction(task, rcfg, cfg.store_particles)
+
+    def optimize(key, policy, model, progress: Progress):
+        start = time.perf_counter()
+        new, trace = search(key, policy, model)
+        trace = _qn_trace(trace)
+        progress(dict(phase="optimize", step=cfg.policy_evals, steps=cfg.policy_evals,
+                      objective=float(trace["value"][-1]), seconds=time.perf_counter() - start))
+        return new, trace, None, predict(key, new, model)  # the fixed seed's own particles
+
+    return optimize
+
+
+def _pilco_optimizer(cfg: ExperimentConfig, task: Task):
+    from pipps.pilco import PolicySearchConfig, optimize_policy, pilco_budget, trajectory
+
+    budget = pilco_budget(task) if cfg.pilco_linesearches is None else pilco_budget(task, length=cfg.pilco_linesearches)
+    search_cfg = PolicySearchConfig(optimizer=budget, horizon=cfg.horizon)
+    predict = jax.jit(lambda policy, model: trajectory(task, policy, model, horizon=cfg.horizon))
+
+    def optimize(key, policy, model, progress: Progress):
+        del key
+        start = time.perf_counter()
+        new, trace = optimize_policy(task, model, policy, search_cfg)
+        trace = _qn_trace(trace)
+        progress(dict(phase="optimize", step=1, steps=1, objective=float(trace["value"][-1]),
+                      seconds=time.perf_counter() - start))
+        traj = jax.device_get(predict(new, model))
+        pred = {"mean": np.asarray(traj.means), "cov": np.asarray(traj.covs), "cost_mean": np.asarray(traj.cost_mean)}
+        return new, trace, None, pred
+
+    return optimize
+
+
+def _trial_from(index, kind, traj, evals, policy_flat, timings) -> TrialResult:
+    traj = jax.device_get(traj)
+    returns, upright = (np.asarray(a) for a in jax.device_get(evals))
+    return TrialResult(index, kind, np.asarray(traj.states), np.asarray(traj.observations),
+                       np.asarray(traj.actions), np.asarray(traj.costs), np.asarray(traj.valid),
+                       returns, upright, policy_flat, timings)
+
+
+def _check_finite_data(inputs: np.ndarray, targets: np.ndarray, trial: int) -> None:
+    if not (np.isfinite(inputs).all() and np.isfinite(targets).all()):
+        raise FloatingPointError(f"trial {trial}: the true-system rollout produced NaN/Inf training data")
+
+
+def run_experiment(
+    cfg: ExperimentConfig,
+    *,
+    progress: Progress | None = None,
+    on_trial: Callable[[ExperimentResult], None] | None = None,
+) -> ExperimentResult:
+    """Run one experiment; see the module docstring. Raises what fails, after ``on_trial`` saw
+    every finished trial and the result has ``status="failed"`` and the error message."""
+    progress = progress or (lambda event: None)
+    on_trial = on_trial or (lambda result: None)
+    t_start = time.perf_counter()
+    task = make_experiment_task(cfg)
+    programs = _Programs(cfg, task)
+    result = ExperimentResult(cfg, [])
+    key = jax.random.PRNGKey(cfg.seed)
+    k_policy, k_trials = jax.random.split(key)
+    policy = init_policy(k_policy, cfg, task)
+    flat = lambda p: np.asarray(ravel_pytree(p)[0])  # noqa: E731
+    inputs, targets = [], []
+    fit_state: FitState | None = None
+    gpc = gp_config(cfg)
+    try:
+        for i in range(cfg.num_trials):
+            k_trial, k_eval, k_opt, k_gp = jax.random.split(jax.random.fold_in(k_trials, i), 4)
+            eval_keys = jax.random.split(k_eval, cfg.eval_rollouts)
+            t0 = time.perf_counter()
+            timings: dict[str, float] = {}
+            progress(dict(phase="trial", trial=i, trials=cfg.num_trials))
+            if i < cfg.num_random:
+                traj = programs.trial_random(k_trial)
+                t1 = time.perf_counter()
+                evals = programs.evaluate_random(eval_keys)
+                trial = _trial_from(i, "random", traj, evals, flat(policy), timings)
+                timings.update(trial=t1 - t0, evaluate=time.perf_counter() - t1)
+            else:
+                data = pad_to_capacity(make_data(np.concatenate(inputs), np.concatenate(targets)), chunk=cfg.gp_chunk)
+                progress(dict(phase="gp", trial=i, points=int(sum(len(a) for a in inputs))))
+                post, fit_state, info = fit(k_gp, data, prev=fit_state, config=gpc)
+                t1 = time.perf_counter()
+                policy, trace, diagnostics, predicted = programs.optimizer(k_opt, policy, post, progress)
+                if not np.all(np.isfinite(flat(policy))):  # the update steps refuse NaN; a guard for the QN paths
+                    raise FloatingPointError(f"trial {i}: the optimised policy parameters are not finite")
+                t2 = time.perf_counter()
+                traj = programs.trial(k_trial, policy)
+                t3 = time.perf_counter()
+                evals = programs.evaluate(eval_keys, policy)
+                trial = _trial_from(i, "learned", traj, evals, flat(policy), timings)
+                timings.update(gp=t1 - t0, optimize=t2 - t1, trial=t3 - t2, evaluate=time.perf_counter() - t3)
+                hyper = jax.device_get(post.hyper)
+                trial.gp_hyper = {"log_lengthscale": np.asarray(hyper.log_lengthscale),
+                                  "log_signal": np.asarray(hyper.log_signal), "log_noise": np.asarray(hyper.log_noise)}
+                trial.gp_info = {"sparse": bool(info.sparse), "num_points": int(info.num_points),
+                                 "objective": np.asarray(info.hyper.objective),
+                                 "messages": "\n".join(info.messages)}
+                trial.opt_trace, trial.diagnostics, trial.predicted = trace, diagnostics, predicted
+            timings["total"] = time.perf_counter() - t0
+            x_in, y_out = training_pairs(task, traj)
+            _check_finite_data(x_in, y_out, i)
+            inputs.append(x_in)
+            targets.append(y_out)
+            result.trials.append(trial)
+            result.wall_seconds = time.perf_counter() - t_start
+            progress(dict(phase="evaluated", trial=i, trials=cfg.num_trials, eval_return=trial.eval_return,
+                          upright=trial.upright_fraction, seconds=timings["total"]))
+            on_trial(result)
+    except BaseException as err:  # keep what finished, say what broke, re-raise
+        result.status, result.error = "failed", f"{type(err).__name__}: {err}"
+        result.wall_seconds = time.perf_counter() - t_start
+        on_trial(result)
+        raise
+    result.status = "complete"
+    result.wall_seconds = time.perf_counter() - t_start
+    on_trial(result)
+    return result
