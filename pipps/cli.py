@@ -1,4 +1,9 @@
-"""The ``pipps`` command line. Thin: parsing and printing only; the work is in library functions."""
+"""The ``pipps`` command line. Thin: parsing and printing only; the work is in library functions.
+
+Commands: ``rollout`` (true-system rollouts with a random policy), ``run`` (one learning
+experiment), ``sweep`` (a table's grid over seeds, parallel and resumable), ``table`` (success
+rates against the thesis) and ``plot`` (rerun recordings). ``pipps COMMAND --help`` lists options.
+"""
 
 from __future__ import annotations
 
@@ -7,22 +12,63 @@ import sys
 
 
 def _positive_int(text: str) -> int:
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
     if value < 1:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
     return value
 
 
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text}")
+    return value
+
+
 def _nonnegative_float(text: str) -> float:
-    value = float(text)
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}") from None
     if not value >= 0.0 or value == float("inf"):
         raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
     return value
 
 
+def _setting(text: str) -> tuple[str, str]:
+    if "=" not in text:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    key, value = text.split("=", 1)
+    return key.strip(), value
+
+
+def _add_experiment_options(p: argparse.ArgumentParser, *, single: bool) -> None:
+    from pipps.experiments.config import METHODS, PRESET_NAMES, TASKS
+
+    p.add_argument("--preset", default="thesis", choices=PRESET_NAMES,
+                   help="thesis (the thesis protocol), pilco (PILCO's task defaults) or quick (a few minutes on a CPU)")
+    if single:
+        p.add_argument("--task", default="cartpole_swingup", choices=TASKS)
+        p.add_argument("--method", default="tp", choices=list(METHODS))
+        p.add_argument("--cost", default=None, help="angle | tip (cart-pole), unicycle; default: the task preset's")
+        p.add_argument("--k", type=_nonnegative_float, default=1.0, help="observation-noise variance multiplier")
+        p.add_argument("--seed", type=_nonnegative_int, default=0)
+        p.add_argument("--particles", type=_positive_int, default=None, help="P (default: the preset's)")
+    p.add_argument("--set", dest="settings", type=_setting, action="append", default=[], metavar="KEY=VALUE",
+                   help="override any experiment setting (repeatable), e.g. --set policy_evals=300")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="pipps", description=__doc__)
+    parser = argparse.ArgumentParser(prog="pipps", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
+
     ro = sub.add_parser("rollout", help="simulate a few episodes with a random policy and print the returns")
     ro.add_argument("--task", default="cartpole_swingup", choices=["cartpole_swingup", "cartpole_balance", "unicycle"])
     ro.add_argument("--preset", default="thesis", choices=["thesis", "pilco"])
@@ -30,7 +76,199 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--policy", default="random-actions", choices=["random-actions", "random-policy"])
     ro.add_argument("--episodes", type=_positive_int, default=3)
     ro.add_argument("--seed", type=int, default=0)
+
+    run = sub.add_parser("run", help="run one episodic learning experiment and write its HDF5 result")
+    _add_experiment_options(run, single=True)
+    run.add_argument("--out", default=None, help="result file (default: runs/<experiment name>.h5)")
+    run.add_argument("--quiet", action="store_true", help="no progress display")
+
+    sw = sub.add_parser("sweep", help="run a table's cells over seeds in parallel workers (resumable)")
+    sw.add_argument("--table", required=True, help="4.1, 4.2, 4.3, 4.4, q001 (Q × 0.01 cell) or del")
+    sw.add_argument("--seeds", type=_positive_int, default=20, help="seeds per cell (0..N-1)")
+    sw.add_argument("--seed-start", type=_nonnegative_int, default=0)
+    sw.add_argument("--methods", default=None, help="comma-separated subset of the table's methods")
+    sw.add_argument("--k", dest="ks", default=None, help="comma-separated subset of the table's k values")
+    sw.add_argument("--jobs", type=_positive_int, default=1, help="parallel worker processes")
+    sw.add_argument("--out", default="runs", help="result folder (one file per experiment)")
+    sw.add_argument("--dry-run", action="store_true", help="list what would run and what is already complete")
+    _add_experiment_options(sw, single=False)
+
+    tb = sub.add_parser("table", help="success rates with 95%% Wilson intervals next to the thesis' tables")
+    tb.add_argument("results", nargs="*", default=["runs"], help="result files or folders (default: runs)")
+    tb.add_argument("--table", default=None, help="one table (default: every table with results)")
+    tb.add_argument("--preset", default=None, help="only results of this task preset (thesis or pilco)")
+
+    pl = sub.add_parser("plot", help="write a rerun recording (.rrd) of results; --png renders it")
+    pl.add_argument("results", nargs="+", help="result files or folders")
+    pl.add_argument("--out", default="pipps.rrd", help="recording to write")
+    pl.add_argument("--png", default=None, help="also render the recording to this PNG (needs xvfb-run)")
+    pl.add_argument("--size", default="1600x1000", help="PNG window size WxH")
     return parser
+
+
+def _progress_printer(stream=sys.stderr):
+    """A one-line progress display: trial, optimization step, current objective, ETA."""
+    import time
+
+    state = {"start": time.perf_counter(), "trial": 0, "trials": 1, "done_s": []}
+
+    def show(event):
+        phase = event["phase"]
+        if phase == "trial":
+            state.update(trial=event["trial"], trials=event["trials"], t0=time.perf_counter())
+        elapsed = time.perf_counter() - state["start"]
+        done = state["done_s"]
+        eta = ""
+        if done:
+            left = state["trials"] - len(done)
+            eta = f" ETA {max(left, 0) * (sum(done[-3:]) / len(done[-3:])) / 60:.1f} min"
+        head = f"\rtrial {state['trial'] + 1}/{state['trials']} [{elapsed / 60:5.1f} min{eta}]"
+        if phase == "gp":
+            stream.write(f"{head} training GP on {event['points']} points".ljust(100))
+        elif phase == "optimize":
+            stream.write(f"{head} policy step {event['step']}/{event['steps']} objective {event['objective']:.3f}".ljust(100))
+        elif phase == "evaluated":
+            done.append(event["seconds"])
+            stream.write(f"{head} evaluated return {event['eval_return']:.3f} (upright {event['upright']:.0%})".ljust(100) + "\n")
+        stream.flush()
+
+    return show
+
+
+def _cmd_run(args) -> int:
+    from pathlib import Path
+
+    from pipps.experiments.config import ConfigError, resolve_config
+    from pipps.experiments.loop import run_experiment
+    from pipps.experiments.results import write_result
+    from pipps.experiments.sweep import experiment_name
+
+    overrides = dict(method=args.method, k=args.k, seed=args.seed, cost=args.cost)
+    if args.particles is not None:
+        overrides["num_particles"] = args.particles
+    overrides.update(dict(args.settings))
+    try:
+        cfg = resolve_config(args.preset, args.task, **overrides)
+    except ConfigError as err:
+        print(f"pipps run: error: {err}", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else Path("runs") / f"{experiment_name(cfg)}.h5"
+    if not args.quiet:
+        print(f"{cfg.task} / {cfg.table_name} / k={cfg.k:g} / seed {cfg.seed} ({args.preset} preset): "
+              f"{cfg.num_random} random + {cfg.num_learned} learned trials, P={cfg.num_particles}, "
+              f"{cfg.policy_evals} policy evaluations per trial -> {out}", file=sys.stderr)
+    result = run_experiment(cfg, progress=None if args.quiet else _progress_printer(),
+                            on_trial=lambda r: write_result(out, r))
+    returns = " ".join(f"{t.eval_return:.2f}" for t in result.trials)
+    print(f"evaluated return per trial: {returns}")
+    verdict = "success" if result.success else "failure"
+    print(f"final evaluated return {result.final_return:.3f}: {verdict} "
+          f"({result.wall_seconds / 60:.1f} min); results in {out}")
+    return 0
+
+
+def _cmd_sweep(args) -> int:
+    from pipps.experiments.config import ConfigError
+    from pipps.experiments.sweep import plan, run_sweep
+    from pipps.experiments.tables import table_configs
+
+    try:
+        methods = args.methods.split(",") if args.methods else None
+        ks = [float(k) for k in args.ks.split(",")] if args.ks else None
+        seeds = range(args.seed_start, args.seed_start + args.seeds)
+        configs = table_configs(args.table, seeds, args.preset, methods=methods, ks=ks, overrides=dict(args.settings))
+    except (ConfigError, ValueError) as err:
+        print(f"pipps sweep: error: {err}", file=sys.stderr)
+        return 2
+    if not configs:
+        print("pipps sweep: error: no cell of the table matches --methods/--k", file=sys.stderr)
+        return 2
+    todo, done = plan(configs, args.out)
+    print(f"{len(configs)} experiments: {len(done)} already complete, {len(todo)} to run with {args.jobs} job(s) "
+          f"-> {args.out}/", file=sys.stderr)
+    if args.dry_run:
+        for _, path in todo:
+            print(f"  run  {path}")
+        return 0
+
+    def on_done(path, err, finished, total):
+        status = "FAILED " + err.splitlines()[0] if err else "done"
+        print(f"[{finished}/{total}] {status}: {path}", file=sys.stderr, flush=True)
+
+    report = run_sweep(configs, args.out, jobs=args.jobs, on_done=on_done)
+    print(f"ran {len(report.ran)}, skipped {len(report.skipped)} complete, failed {len(report.failed)} "
+          f"in {report.seconds / 60:.1f} min")
+    return 1 if report.failed else 0
+
+
+def _result_paths(items):
+    from pathlib import Path
+
+    paths = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            paths += sorted(p.glob("*.h5"))
+        elif p.exists():
+            paths.append(p)
+        else:
+            raise FileNotFoundError(f"no such result file or folder: {item}")
+    return paths
+
+
+def _cmd_table(args) -> int:
+    from pipps.experiments.results import ResultError, read_summary
+    from pipps.experiments.tables import TABLES, collect, get_table, render_table
+
+    try:
+        paths = _result_paths(args.results)
+        tables = [get_table(args.table)] if args.table else list(TABLES.values())
+    except (FileNotFoundError, ValueError) as err:
+        print(f"pipps table: error: {err}", file=sys.stderr)
+        return 2
+    summaries, skipped = [], []
+    for p in paths:
+        try:
+            summaries.append(read_summary(p))
+        except ResultError as err:
+            skipped.append(str(err))
+    printed = 0
+    for t in tables:
+        cells = collect(t, summaries, preset=args.preset)
+        if any(c.n for c in cells) or args.table:
+            print(render_table(t, cells))
+            print()
+            printed += 1
+    print(f"{len(summaries)} complete results read; {len(skipped)} incomplete or corrupt files not counted")
+    for s in skipped:
+        print(f"  not counted: {s}")
+    return 0 if printed else 1
+
+
+def _cmd_plot(args) -> int:
+    from pipps.experiments.plot import record, render_png
+    from pipps.experiments.results import ResultError, read_result
+
+    try:
+        paths = _result_paths(args.results)
+    except FileNotFoundError as err:
+        print(f"pipps plot: error: {err}", file=sys.stderr)
+        return 2
+    results = []
+    for p in paths:
+        try:
+            results.append(read_result(p))
+        except ResultError as err:
+            print(f"  skipped: {err}", file=sys.stderr)
+    if not results:
+        print("pipps plot: error: no complete results to plot", file=sys.stderr)
+        return 2
+    record(results, args.out)
+    print(f"wrote {args.out} ({len(results)} experiments)")
+    if args.png:
+        render_png(args.out, args.png, args.size)
+        print(f"wrote {args.png}")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,7 +282,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  episode {i}: return (total cost) {ret:.4f} over {n} steps")
         print(f"  mean return {rep.returns.mean():.4f}")
         return 0
-    return 2  # pragma: no cover - argparse enforces the choices
+    handlers = {"run": _cmd_run, "sweep": _cmd_sweep, "table": _cmd_table, "plot": _cmd_plot}
+    return handlers[args.command](args)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,0 +1,226 @@
+"""Experiment results in HDF5 (h5py): one file per experiment, written atomically.
+
+The schema (version :data:`SCHEMA_VERSION`) is documented in docs/results-schema.md. In short::
+
+    /                      attrs: schema_version, status (running|complete|failed), error,
+                                  config_json, checksum, wall_seconds, num_trials_done,
+                                  final_return, success
+    /config                attrs: every ExperimentConfig field (None stored as "__none__")
+    /versions              attrs: pipps, jax, jaxlib, numpy, h5py, python, platform, device
+    /eval_return           (n,) mean evaluation return per finished trial
+    /upright_fraction      (n,)
+    /trials/NNN            attrs: kind, eval_return, upright_fraction
+        states observations actions costs valid eval_returns eval_upright policy
+        timings/           attrs: seconds per phase
+        gp/                log_lengthscale log_signal log_noise objective; attrs sparse, num_points, messages
+        opt_trace/         per policy step (or quasi-Newton line search) arrays
+        diagnostics/       per time step k_lr var_rp var_lr, k_lr_per_iteration, nonfinite_steps
+        predicted/         particles (T+1, S_p, D) and cost_mean, or PILCO mean/cov/cost_mean
+
+Every write goes to a temporary file in the same folder, is flushed to disk and then renamed
+over the target (``os.replace``), so a reader never sees a half-written file under the final
+name. ``checksum`` is a SHA-256 over the configuration and every trial's evaluation returns and
+policy; :func:`check_result` recomputes it, so a file altered or damaged after writing is
+reported as corrupt, not read.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from pipps.experiments.config import ExperimentConfig, from_dict
+from pipps.experiments.loop import ExperimentResult, TrialResult
+
+SCHEMA_VERSION = 1
+_TRIAL_ARRAYS = ("states", "observations", "actions", "costs", "valid", "eval_returns", "eval_upright", "policy")
+_SUBGROUPS = ("opt_trace", "diagnostics", "predicted")
+NONE = "__none__"
+
+
+class ResultError(ValueError):
+    """A result file is missing, unreadable, incomplete or corrupt; the message says which."""
+
+
+def versions() -> dict[str, str]:
+    import h5py as _h5py
+    import jax
+    import jaxlib
+
+    import pipps
+
+    try:
+        device = str(jax.devices()[0].device_kind)
+    except Exception:  # pragma: no cover - no backend
+        device = "unknown"
+    return {"pipps": pipps.__version__, "jax": jax.__version__, "jaxlib": jaxlib.__version__,
+            "numpy": np.__version__, "h5py": _h5py.__version__, "python": sys.version.split()[0],
+            "platform": platform.platform(), "device": device}
+
+
+def _checksum(config_json: str, trials) -> str:
+    h = hashlib.sha256(config_json.encode())
+    for t in trials:
+        for arr in (t["eval_returns"], t["policy"]):
+            h.update(np.ascontiguousarray(np.asarray(arr, dtype=np.float64)).tobytes())
+    return h.hexdigest()
+
+
+def _config_json(cfg: ExperimentConfig) -> str:
+    return json.dumps(cfg.to_dict(), sort_keys=True)
+
+
+def _write_dict(group: h5py.Group, d: dict[str, Any]) -> None:
+    for name, value in d.items():
+        if isinstance(value, str):
+            group.attrs[name] = value
+        elif isinstance(value, (bool, int, float, np.bool_)) and np.ndim(value) == 0:
+            group.attrs[name] = value
+        elif value is not None:
+            group.create_dataset(name, data=np.asarray(value), compression="gzip" if np.size(value) > 256 else None)
+
+
+def _write_trial(group: h5py.Group, t: TrialResult) -> None:
+    group.attrs["kind"] = t.kind
+    group.attrs["eval_return"] = t.eval_return
+    group.attrs["upright_fraction"] = t.upright_fraction
+    for name in _TRIAL_ARRAYS:
+        group.create_dataset(name, data=np.asarray(getattr(t, name)))
+    group.create_group("timings").attrs.update({k: float(v) for k, v in t.timings.items()})
+    if t.gp_hyper is not None:
+        gp = group.create_group("gp")
+        _write_dict(gp, t.gp_hyper)
+        _write_dict(gp, t.gp_info or {})
+    for name in _SUBGROUPS:
+        value = getattr(t, name)
+        if value is not None:
+            _write_dict(group.create_group(name), value)
+
+
+def write_result(path: str | os.PathLike, result: ExperimentResult) -> None:
+    """Write ``result`` to ``path`` atomically (temporary file, fsync, rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    cfg_json = _config_json(result.config)
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs["schema_version"] = SCHEMA_VERSION
+            f.attrs["status"] = result.status
+            f.attrs["error"] = result.error
+            f.attrs["config_json"] = cfg_json
+            f.attrs["wall_seconds"] = float(result.wall_seconds)
+            f.attrs["num_trials_done"] = len(result.trials)
+            f.attrs["final_return"] = float(result.final_return)
+            f.attrs["success"] = bool(result.success)
+            f.attrs["checksum"] = _checksum(cfg_json, [dict(eval_returns=t.eval_returns, policy=t.policy)
+                                                       for t in result.trials])
+            f.create_group("config").attrs.update(
+                {k: (NONE if v is None else (list(v) if isinstance(v, tuple) else v))
+                 for k, v in result.config.to_dict().items()})
+            f.create_group("versions").attrs.update(versions())
+            f.create_dataset("eval_return", data=np.array([t.eval_return for t in result.trials], dtype=float))
+            f.create_dataset("upright_fraction", data=np.array([t.upright_fraction for t in result.trials], dtype=float))
+            trials = f.create_group("trials")
+            for t in result.trials:
+                _write_trial(trials.create_group(f"{t.index:03d}"), t)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def check_result(path: str | os.PathLike) -> str:
+    """``"complete"`` for a whole, verified result; otherwise raise :class:`ResultError` saying why.
+
+    Checks: the file opens as HDF5, has this schema version, says ``status=complete``, holds
+    one group per trial of its configuration with every required array, and its checksum matches.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ResultError(f"{path}: no such result file")
+    try:
+        with h5py.File(path, "r") as f:
+            version = f.attrs.get("schema_version")
+            if version != SCHEMA_VERSION:
+                raise ResultError(f"{path}: schema version {version!r}, expected {SCHEMA_VERSION}")
+            status = f.attrs.get("status")
+            if status != "complete":
+                raise ResultError(f"{path}: status is {status!r} (not complete)"
+                                  + (f": {f.attrs.get('error')}" if status == "failed" else ""))
+            cfg_json = f.attrs["config_json"]
+            cfg = from_dict(json.loads(cfg_json))
+            names = sorted(f["trials"].keys())
+            if len(names) != cfg.num_trials:
+                raise ResultError(f"{path}: {len(names)} trials stored, the configuration has {cfg.num_trials}")
+            trials = []
+            for n in names:
+                g = f["trials"][n]
+                missing = [a for a in _TRIAL_ARRAYS if a not in g]
+                if missing:
+                    raise ResultError(f"{path}: trial {n} lacks {missing}")
+                trials.append(dict(eval_returns=g["eval_returns"][()], policy=g["policy"][()]))
+            if _checksum(cfg_json, trials) != f.attrs.get("checksum"):
+                raise ResultError(f"{path}: checksum mismatch (the file was altered or damaged)")
+    except ResultError:
+        raise
+    except Exception as err:  # h5py raises OSError/KeyError/... on damaged files
+        raise ResultError(f"{path}: unreadable result file ({type(err).__name__}: {err})") from err
+    return "complete"
+
+
+def is_complete(path: str | os.PathLike) -> bool:
+    try:
+        return check_result(path) == "complete"
+    except ResultError:
+        return False
+
+
+def _read_group(g: h5py.Group) -> dict[str, Any]:
+    out: dict[str, Any] = {k: v for k, v in g.attrs.items()}
+    for k, v in g.items():
+        if isinstance(v, h5py.Dataset):
+            out[k] = v[()]
+    return out
+
+
+def read_result(path: str | os.PathLike, *, verify: bool = True) -> ExperimentResult:
+    """Load a result file (verified by :func:`check_result` unless ``verify=False``)."""
+    if verify:
+        check_result(path)
+    with h5py.File(path, "r") as f:
+        cfg = from_dict(json.loads(f.attrs["config_json"]))
+        trials = []
+        for n in sorted(f["trials"].keys()):
+            g = f["trials"][n]
+            arrays = {a: g[a][()] for a in _TRIAL_ARRAYS}
+            t = TrialResult(int(n), str(g.attrs["kind"]), timings=dict(g["timings"].attrs), **arrays)
+            if "gp" in g:
+                gp = _read_group(g["gp"])
+                t.gp_hyper = {k: gp.pop(k) for k in ("log_lengthscale", "log_signal", "log_noise")}
+                t.gp_info = gp
+            for name in _SUBGROUPS:
+                if name in g:
+                    setattr(t, name, _read_group(g[name]))
+            trials.append(t)
+        return ExperimentResult(cfg, trials, str(f.attrs["status"]), str(f.attrs["error"]),
+                                float(f.attrs["wall_seconds"]))
+
+
+def read_summary(path: str | os.PathLike) -> dict[str, Any]:
+    """The few numbers the tables need, from a verified file: config, success, final return, wall time."""
+    check_result(path)
+    with h5py.File(path, "r") as f:
+        return {"config": from_dict(json.loads(f.attrs["config_json"])), "success": bool(f.attrs["success"]),
+                "final_return": float(f.attrs["final_return"]), "wall_seconds": float(f.attrs["wall_seconds"]),
+                "eval_return": f["eval_return"][()], "upright_fraction": f["upright_fraction"][()], "path": str(path)}

@@ -1,0 +1,239 @@
+"""The thesis' success-rate tables (Tables 4.1–4.4, experiments.md) as sweep presets and as reports.
+
+Each table is a list of cells; a cell is a set of configuration values (task, cost, k, method)
+and the thesis' success rate. ``table_configs(table, seeds, preset)`` expands a table into the
+configurations of a sweep; ``render_table(table, summaries)`` prints our success rate with its
+95 % Wilson interval and the number of seeds next to the thesis value, as markdown.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Iterable
+
+from pipps.experiments.config import METHODS, ExperimentConfig, resolve_config
+
+
+@dataclasses.dataclass(frozen=True)
+class Cell:
+    row: str  # the row label, e.g. "k = 1" or "Angle, k = 10⁻²"
+    method: str
+    values: tuple[tuple[str, Any], ...]  # configuration values that define the cell
+    thesis: float | None
+
+
+@dataclasses.dataclass(frozen=True)
+class Table:
+    name: str
+    title: str
+    task: str
+    rows: tuple[str, ...]
+    methods: tuple[str, ...]
+    cells: tuple[Cell, ...]
+
+
+def _k_label(k: float) -> str:
+    return "10⁻²" if k == 0.01 else f"{k:g}"
+
+
+def _grid(name, title, task, cost, rows_k, methods, values_by_row):
+    cells = []
+    for k, row_values in zip(rows_k, values_by_row):
+        for m, v in zip(methods, row_values):
+            if v is not None:
+                cells.append(Cell(f"k = {_k_label(k)}", m, (("cost", cost), ("k", k)), v))
+    return Table(name, title, task, tuple(f"k = {_k_label(k)}" for k in rows_k), tuple(methods), tuple(cells))
+
+
+_T41_METHODS = ("pilco", "rp", "rp_fs", "gr", "gr_fs", "lr", "tp", "tp-sf", "tp+sn")
+_T41 = [
+    [0.88, 0.69, 0.24, 0.63, 0.74, 0.57, 0.82, None, 0.96],
+    [0.79, 0.74, 0.23, 0.89, 0.71, 0.96, 0.99, 0.93, None],
+    [0.70, 0.58, 0.08, 0.62, 0.41, 0.94, 0.95, 0.87, None],
+    [0.37, 0.44, 0.04, 0.34, 0.25, 0.86, 0.83, 0.78, None],
+    [0.01, 0.11, 0.00, 0.08, 0.02, 0.45, 0.40, 0.42, None],
+]
+_T42_METHODS = ("pilco", "rp", "rp_fs", "gr", "gr_fs", "lr", "tp")
+_T42 = [[0.92, 0.44, 0.20, 0.47, 0.78, 0.36, 0.54], [0.73, 0.15, 0.08, 0.68, 0.50, 0.28, 0.48]]
+_T43_METHODS = ("pilco", "rp", "gr", "lr", "tp", "gtp", "glr", "gtp+sn")
+_T43 = [
+    ("angle", 0.01, [0.88, 0.69, 0.63, 0.57, 0.82, 0.65, 0.42, 0.88]),
+    ("angle", 1.0, [0.79, 0.74, 0.89, 0.96, 0.99, 0.90, 0.93, None]),
+    ("tip", 0.01, [0.92, 0.44, 0.47, 0.36, 0.54, 0.60, 0.45, 0.80]),
+    ("tip", 1.0, [0.73, 0.15, 0.68, 0.28, 0.48, 0.69, 0.35, None]),
+]
+_T44_METHODS = ("pilco", "rp", "rp_fs", "gr", "gr_fs", "lr", "tp")
+_T44 = [0.91, 0.80, 0.39, 0.96, 0.63, 0.47, 0.94]
+
+
+def _table_43() -> Table:
+    cells, rows = [], []
+    for cost, k, vals in _T43:
+        row = f"{cost.capitalize()}, k = {_k_label(k)}"
+        rows.append(row)
+        cells += [Cell(row, m, (("cost", cost), ("k", k)), v) for m, v in zip(_T43_METHODS, vals) if v is not None]
+    return Table("4.3", "Table 4.3 — Gaussian shaping, cart-pole swing-up", "cartpole_swingup", tuple(rows),
+                 _T43_METHODS, tuple(cells))
+
+
+def _extra() -> Table:
+    row = "Angle, k = 1, Q × 0.01"
+    cells = (Cell(row, "tp", (("cost", "angle"), ("k", 1.0), ("cost_scale", 0.01)), 0.97),
+             Cell(row, "pilco", (("cost", "angle"), ("k", 1.0), ("cost_scale", 0.01)), 0.46))
+    return Table("q001", "Angle Cost with Q × 0.01 (thesis §4.5.4 text)", "cartpole_swingup", (row,), ("pilco", "tp"), cells)
+
+
+def _del() -> Table:
+    row = "Angle, k = 1"
+    cells = (Cell(row, "del", (("cost", "angle"), ("k", 1.0)), None),)
+    return Table("del", "DEL on cart-pole balancing (thesis: a non-trivial rate, figure only)", "cartpole_balance",
+                 (row,), ("del",), cells)
+
+
+TABLES: dict[str, Table] = {
+    "4.1": _grid("4.1", "Table 4.1 — cart-pole swing-up, Angle Cost", "cartpole_swingup", "angle",
+                 [0.01, 1.0, 4.0, 9.0, 16.0], _T41_METHODS, _T41),
+    "4.2": _grid("4.2", "Table 4.2 — cart-pole swing-up, Tip Cost", "cartpole_swingup", "tip",
+                 [0.01, 1.0], _T42_METHODS, _T42),
+    "4.3": _table_43(),
+    "4.4": Table("4.4", "Table 4.4 — unicycle balancing", "unicycle", ("unicycle",), _T44_METHODS,
+                 tuple(Cell("unicycle", m, (), v) for m, v in zip(_T44_METHODS, _T44))),
+    "q001": _extra(),
+    "del": _del(),
+}
+
+
+def get_table(name: str) -> Table:
+    if name not in TABLES:
+        raise ValueError(f"unknown table {name!r}; choose one of {', '.join(TABLES)}")
+    return TABLES[name]
+
+
+def select_cells(table: Table, methods: Iterable[str] | None = None, ks: Iterable[float] | None = None) -> list[Cell]:
+    """The table's cells, optionally restricted to some methods and noise multipliers."""
+    cells = list(table.cells)
+    if methods is not None:
+        methods = list(methods)
+        bad = [m for m in methods if m not in METHODS]
+        if bad:
+            raise ValueError(f"method: unknown {bad}; choose from {', '.join(METHODS)}")
+        cells = [c for c in cells if c.method in methods]
+    if ks is not None:
+        ks = [float(k) for k in ks]
+        cells = [c for c in cells if dict(c.values).get("k", 1.0) in ks]
+    return cells
+
+
+def table_configs(
+    table: str | Table,
+    seeds: int | Iterable[int],
+    preset: str = "thesis",
+    *,
+    methods: Iterable[str] | None = None,
+    ks: Iterable[float] | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> list[ExperimentConfig]:
+    """Every (cell × seed) configuration of a table. Seeds are ordered outermost, so a sweep
+    cut short has a few seeds of every cell rather than all seeds of a few cells."""
+    t = get_table(table) if isinstance(table, str) else table
+    seed_list = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
+    cells = select_cells(t, methods, ks)
+    return [resolve_config(preset, t.task, method=c.method, seed=s, **dict(c.values), **(overrides or {}))
+            for s in seed_list for c in cells]
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    """The 95 % Wilson score interval of a binomial proportion (Wilson, 1927)."""
+    if n <= 0:
+        return (0.0, 1.0)
+    p = successes / n
+    den = 1.0 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def _cell_key(values: dict[str, Any], method: str, cfg: ExperimentConfig) -> bool:
+    if cfg.method != method:
+        return False
+    for name, v in values.items():
+        got = getattr(cfg, name)
+        if name == "cost" and got is None:
+            from pipps.tasks.presets import DEFAULT_COST
+
+            got = DEFAULT_COST[(cfg.task, cfg.preset)]
+        if isinstance(v, float) and isinstance(got, (int, float)):
+            if not math.isclose(float(got), v, rel_tol=1e-9):
+                return False
+        elif got != v:
+            return False
+    return True
+
+
+@dataclasses.dataclass
+class CellResult:
+    cell: Cell
+    successes: int
+    n: int
+    seeds: list[int]
+    mean_final_return: float
+    mean_wall_seconds: float
+
+    @property
+    def rate(self) -> float:
+        return self.successes / self.n if self.n else math.nan
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        return wilson_interval(self.successes, self.n)
+
+    @property
+    def agrees(self) -> bool | None:
+        """Whether the thesis value lies inside our 95 % interval (None without data or thesis value)."""
+        if not self.n or self.cell.thesis is None:
+            return None
+        lo, hi = self.interval
+        return lo <= self.cell.thesis <= hi
+
+
+def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = None) -> list[CellResult]:
+    """Group result summaries (:func:`pipps.experiments.results.read_summary`) into the table's cells."""
+    out = []
+    for cell in table.cells:
+        values = dict(cell.values)
+        rows = [s for s in summaries if s["config"].task == table.task and _cell_key(values, cell.method, s["config"])
+                and (preset is None or s["config"].preset == preset)]
+        n = len(rows)
+        out.append(CellResult(
+            cell, sum(bool(s["success"]) for s in rows), n, sorted(s["config"].seed for s in rows),
+            float(sum(s["final_return"] for s in rows) / n) if n else math.nan,
+            float(sum(s["wall_seconds"] for s in rows) / n) if n else math.nan))
+    return out
+
+
+def render_table(table: Table, results: list[CellResult], *, show_empty: bool = False) -> str:
+    """Markdown: one row per table row, one column per method; each cell
+    ``ours [lo, hi] (n) / thesis``, with ``!`` where the thesis value lies outside our interval."""
+    by = {(r.cell.row, r.cell.method): r for r in results}
+    methods = [m for m in table.methods if show_empty or any(by.get((row, m)) and by[(row, m)].n for row in table.rows)]
+    lines = [f"**{table.title}** — ours: success rate [95 % Wilson interval] (seeds) / thesis "
+             "(`!`: the thesis value lies outside our interval)", "",
+             "| | " + " | ".join(METHODS[m] for m in methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    for row in table.rows:
+        cells = []
+        for m in methods:
+            r = by.get((row, m))
+            if r is None:
+                cells.append("")
+                continue
+            thesis = "–" if r.cell.thesis is None else f"{r.cell.thesis:.2f}"
+            if not r.n:
+                cells.append(f"— / {thesis}")
+                continue
+            lo, hi = r.interval
+            flag = " !" if r.agrees is False else ""
+            cells.append(f"{r.rate:.2f} [{lo:.2f}, {hi:.2f}] ({r.n}) / {thesis}{flag}")
+        if any(c and not c.startswith("—") for c in cells) or show_empty:
+            lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
