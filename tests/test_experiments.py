@@ -1,0 +1,387 @@
+"""The learning loop, HDF5 results, sweeps, tables and the CLI (issue: learning loop and experiment CLI).
+
+The tiny experiments here use the quick preset shrunk further (a few particles, policy steps and
+rollouts): they test the plumbing exactly — determinism, resumption, the schema, failure
+handling — not learning. Learning itself is checked by ``test_quick_preset_learns`` (a reduced
+quick run in the default suite) and by the full quick preset under ``-m slow``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import jax
+import numpy as np
+import pytest
+
+from pipps.experiments import ConfigError, resolve_config, run_experiment
+from pipps.experiments.results import (
+    ResultError,
+    check_result,
+    is_complete,
+    read_result,
+    read_summary,
+    write_result,
+)
+from pipps.experiments.sweep import experiment_name, run_sweep
+from pipps.experiments.tables import TABLES, collect, render_table, table_configs, wilson_interval
+
+TINY = dict(num_learned=1, num_particles=8, policy_evals=6, eval_rollouts=3, gp_max_iters=10, progress_chunk=3,
+            store_particles=4)
+
+
+def tiny(**kw):
+    return resolve_config("quick", kw.pop("task", "cartpole_swingup"), **{**TINY, **kw})
+
+
+def assert_same_results(a, b):
+    assert a.config == b.config
+    assert len(a.trials) == len(b.trials)
+    for ta, tb in zip(a.trials, b.trials):
+        for name in ("states", "actions", "eval_returns", "policy"):
+            np.testing.assert_array_equal(getattr(ta, name), getattr(tb, name), err_msg=name)
+
+
+# -- configuration -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "overrides, setting",
+    [
+        (dict(method="sgd"), "method"),
+        (dict(k=-1.0), "k"),
+        (dict(k=float("nan")), "k"),
+        (dict(num_particles=0), "num_particles"),
+        (dict(num_particles=1), "num_particles"),
+        (dict(policy_evals=0), "policy_evals"),
+        (dict(cost="tip"), None),  # valid
+        (dict(cost="height"), "cost"),
+        (dict(momentum=1.0), "momentum"),
+        (dict(learning_rate=0.0), "learning_rate"),
+        (dict(num_random=0), "num_random"),
+        (dict(no_such_setting=1), "no_such_setting"),
+        (dict(num_particles="many"), "num_particles"),
+    ],
+)
+def test_invalid_settings_fail_at_once_naming_the_setting(overrides, setting):
+    if setting is None:
+        assert resolve_config("thesis", "cartpole_swingup", **overrides).cost == "tip"
+        return
+    with pytest.raises(ConfigError, match=rf"^{setting}:"):
+        resolve_config("thesis", "cartpole_swingup", **overrides)
+
+
+def test_bad_preset_and_task_are_named():
+    with pytest.raises(ConfigError, match="^preset:"):
+        resolve_config("fast", "cartpole_swingup")
+    with pytest.raises(ConfigError, match="^task:"):
+        resolve_config("thesis", "acrobot")
+
+
+def test_thesis_preset_is_the_thesis_protocol():
+    """experiments.md: 1 + 15 trials / 5 + 30, P = 300, 600 evaluations, α = 5e-4, γ = 0.9, 50 centres, 30 evals."""
+    c = resolve_config("thesis", "cartpole_swingup")
+    assert (c.num_random, c.num_learned, c.num_particles, c.policy_evals) == (1, 15, 300, 600)
+    assert (c.learning_rate, c.momentum, c.num_basis, c.eval_rollouts) == (5e-4, 0.9, 50, 30)
+    assert (c.policy, c.policy_init, c.log_lambda_init, c.estimator_choices) == ("rbf", "start", (0.0,), "thesis")
+    assert c.success_threshold == 15.0
+    u = resolve_config("thesis", "unicycle")
+    assert (u.num_random, u.num_learned, u.policy) == (5, 30, "linear")
+
+
+def test_string_overrides_are_typed():
+    c = resolve_config("thesis", "cartpole_swingup", k="4", num_particles="100", log_lambda_init="0,2,4,2",
+                       horizon="none")
+    assert (c.k, c.num_particles, c.log_lambda_init, c.horizon) == (4.0, 100, (0.0, 2.0, 4.0, 2.0), None)
+
+
+# -- tables ----------------------------------------------------------------------------------------
+
+
+def test_wilson_interval_matches_scipy():
+    from scipy.stats import binomtest
+
+    for s, n in [(0, 10), (5, 10), (99, 100), (1, 3), (20, 20)]:
+        ci = binomtest(s, n).proportion_ci(confidence_level=0.95, method="wilson")
+        np.testing.assert_allclose(wilson_interval(s, n), (ci.low, ci.high), atol=1e-12)
+
+
+def test_tables_hold_the_thesis_values_and_expand_to_configs():
+    t41 = TABLES["4.1"]
+    assert len(t41.cells) == 5 * 7 + 4 + 1  # 7 methods in every row; TP−σ_f in 4 rows, TP+σ_n in 1
+    cell = next(c for c in t41.cells if c.method == "tp" and dict(c.values)["k"] == 1.0)
+    assert cell.thesis == 0.99
+    cfgs = table_configs("4.1", 3, "thesis", methods=["tp", "pilco"], ks=[1.0])
+    assert [(c.method, c.seed) for c in cfgs] == [("pilco", 0), ("tp", 0), ("pilco", 1), ("tp", 1), ("pilco", 2), ("tp", 2)]
+    assert all(c.k == 1.0 and c.cost == "angle" and c.num_particles == 300 for c in cfgs)
+    assert len(table_configs("4.3", 1)) == 30
+    q = table_configs("q001", 1)
+    assert {c.cost_scale for c in q} == {0.01}
+    with pytest.raises(ValueError, match="method"):
+        table_configs("4.1", 1, methods=["nope"])
+
+
+def test_table_counts_cells_and_flags_disagreement():
+    cfgs = table_configs("4.1", 10, "thesis", methods=["tp"], ks=[1.0, 16.0])
+    summaries = [{"config": c, "success": c.seed < (9 if c.k == 1.0 else 1), "final_return": 10.0 + c.seed,
+                  "wall_seconds": 60.0} for c in cfgs]
+    cells = {(r.cell.row, r.cell.method): r for r in collect(TABLES["4.1"], summaries)}
+    k1, k16 = cells[("k = 1", "tp")], cells[("k = 16", "tp")]
+    assert (k1.successes, k1.n, k16.successes, k16.n) == (9, 10, 1, 10)
+    assert k1.agrees is False  # 9/10 gives [0.596, 0.982]: the thesis' 0.99 lies above it
+    assert k16.agrees is True  # 1/10 gives [0.018, 0.404]: 0.40 inside
+    text = render_table(TABLES["4.1"], list(cells.values()))
+    assert "0.90 [0.60, 0.98] (10) / 0.99 !" in text and "0.10 [0.02, 0.40] (10) / 0.40 |" in text
+    assert cells[("k = 4", "tp")].n == 0
+
+
+# -- the loop and its results ----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny_result(tmp_path_factory):
+    path = tmp_path_factory.mktemp("run") / "tiny.h5"
+    result = run_experiment(tiny(), on_trial=lambda r: write_result(path, r))
+    return result, path
+
+
+def test_result_file_schema_and_round_trip(tiny_result):
+    result, path = tiny_result
+    assert check_result(path) == "complete"
+    back = read_result(path)
+    assert_same_results(result, back)
+    with h5py.File(path, "r") as f:
+        assert f.attrs["schema_version"] == 1 and f.attrs["status"] == "complete"
+        assert json.loads(f.attrs["config_json"])["method"] == "tp"
+        assert set(f["versions"].attrs) >= {"pipps", "jax", "jaxlib", "numpy", "h5py", "python", "platform"}
+        assert f["eval_return"].shape == (2,)
+        learned = f["trials/001"]
+        H, S = 30, 4
+        assert learned["states"].shape == (H + 1, S) and learned["actions"].shape == (H, 1)
+        assert learned["eval_returns"].shape == (3,) and learned["policy"].shape == (50 * 4 + 50 + 4,)
+        assert learned["gp/log_lengthscale"].shape == (4, 5) and learned["gp"].attrs["num_points"] == 30
+        assert learned["opt_trace/value"].shape == (6,)
+        assert learned["diagnostics/k_lr"].shape == (H,)
+        assert learned["predicted/particles"].shape == (H + 1, 4, 4)
+        assert set(learned["timings"].attrs) >= {"gp", "optimize", "trial", "evaluate", "total"}
+    # the stored evaluation is what the policy does on the true system
+    np.testing.assert_allclose(f_eval := back.trials[1].eval_return, np.mean(result.trials[1].eval_returns))
+    assert math.isfinite(f_eval)
+
+
+def test_results_are_deterministic_in_the_config(tiny_result):
+    result, _ = tiny_result
+    again = run_experiment(tiny())
+    assert_same_results(result, again)
+
+
+def test_corrupt_and_partial_files_are_detected(tiny_result, tmp_path):
+    result, path = tiny_result
+    # truncated (a half-written file under the final name)
+    bad = tmp_path / "truncated.h5"
+    data = path.read_bytes()
+    bad.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ResultError, match="unreadable"):
+        check_result(bad)
+    # altered after writing: the checksum catches it
+    altered = tmp_path / "altered.h5"
+    shutil.copy(path, altered)
+    with h5py.File(altered, "r+") as f:
+        f["trials/001/eval_returns"][0] += 1.0
+    with pytest.raises(ResultError, match="checksum"):
+        check_result(altered)
+    # a trial group removed
+    missing = tmp_path / "missing.h5"
+    shutil.copy(path, missing)
+    with h5py.File(missing, "r+") as f:
+        del f["trials/001"]
+    with pytest.raises(ResultError, match="1 trials stored"):
+        check_result(missing)
+    # still running
+    running = tmp_path / "running.h5"
+    write_result(running, type(result)(result.config, result.trials[:1], "running"))
+    with pytest.raises(ResultError, match="running"):
+        check_result(running)
+    assert not is_complete(running) and not is_complete(tmp_path / "absent.h5")
+    with pytest.raises(ResultError):
+        read_summary(bad)
+
+
+def test_a_failure_part_way_keeps_the_finished_trials(tmp_path):
+    path = tmp_path / "fails.h5"
+
+    def progress(event):
+        if event["phase"] == "gp" and event["trial"] == 2:
+            raise RuntimeError("simulated crash in trial 2")
+
+    with pytest.raises(RuntimeError, match="simulated"):
+        run_experiment(tiny(num_learned=2), progress=progress, on_trial=lambda r: write_result(path, r))
+    with pytest.raises(ResultError, match="failed.*simulated crash"):
+        check_result(path)
+    partial = read_result(path, verify=False)
+    assert partial.status == "failed" and [t.index for t in partial.trials] == [0, 1]
+
+
+def test_unicycle_evaluation_charges_fallen_steps():
+    """Evaluation return = summed cost of the valid steps + 1 per step after a fall; upright = never fell."""
+    from pipps.experiments.loop import _Programs, make_experiment_task
+    from pipps.rollout import rollout
+
+    cfg = tiny(task="unicycle")
+    task = make_experiment_task(cfg)
+    keys = jax.random.split(jax.random.PRNGKey(3), 4)
+    returns, upright = _Programs(cfg, task).evaluate_random(keys)
+    for key, ret, up in zip(keys, np.asarray(returns), np.asarray(upright)):
+        traj = rollout(task, key, None)
+        valid = np.asarray(traj.valid)
+        assert ret == pytest.approx(float(traj.total_cost) + (task.horizon - valid.sum()), abs=1e-12)
+        assert bool(up) == bool(valid.all())
+    assert not np.asarray(upright).all()  # random torques topple it within 2 s
+
+
+# -- sweeps ----------------------------------------------------------------------------------------
+
+
+def test_killed_and_resumed_sweep_equals_uninterrupted(tiny_result, tmp_path):
+    cfgs = [tiny(seed=0), tiny(seed=1, method="rp")]
+    full = run_sweep(cfgs, tmp_path / "full", jobs=2)
+    assert not full.failed and len(full.ran) == 2
+    # "killed": the first experiment had finished (the worker's own writer produced its file),
+    # the second was in flight (its file says running)
+    part = tmp_path / "resumed"
+    first = part / f"{experiment_name(cfgs[0])}.h5"
+    assert tiny_result[0].config == cfgs[0]
+    write_result(first, tiny_result[0])
+    stamp = first.stat().st_mtime_ns
+    in_flight = part / f"{experiment_name(cfgs[1])}.h5"
+    write_result(in_flight, type(read_result(first))(cfgs[1], read_result(first).trials[:1], "running"))
+    resumed = run_sweep(cfgs, part, jobs=1)
+    assert resumed.skipped == [str(first)] and resumed.ran == [str(in_flight)]
+    assert first.stat().st_mtime_ns == stamp  # not rerun
+    for cfg in cfgs:
+        name = f"{experiment_name(cfg)}.h5"
+        assert_same_results(read_result(tmp_path / "full" / name), read_result(part / name))
+    again = run_sweep(cfgs, part, jobs=1)
+    assert again.ran == [] and len(again.skipped) == 2
+
+
+# -- CLI ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "argv, option",
+    [
+        (["run", "--method", "sgd"], "--method"),
+        (["run", "--k", "-1"], "--k"),
+        (["run", "--particles", "0"], "--particles"),
+        (["run", "--preset", "fast"], "--preset"),
+        (["sweep", "--table", "4.1", "--jobs", "0"], "--jobs"),
+    ],
+)
+def test_cli_rejects_bad_values_naming_the_option(argv, option, capsys):
+    from pipps.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert option in capsys.readouterr().err
+
+
+def test_cli_rejects_bad_settings_and_tables(capsys):
+    from pipps.cli import main
+
+    assert main(["run", "--set", "num_particles=0"]) == 2
+    assert "num_particles" in capsys.readouterr().err
+    assert main(["sweep", "--table", "9.9"]) == 2
+    assert "unknown table" in capsys.readouterr().err
+    assert main(["run", "--set", "momentum=2"]) == 2
+    assert "momentum" in capsys.readouterr().err
+
+
+def test_cli_table_reads_results_and_skips_corrupt(tiny_result, tmp_path, capsys):
+    from pipps.cli import main
+
+    _, path = tiny_result
+    folder = tmp_path / "res"
+    folder.mkdir()
+    cfg = resolve_config("thesis", "cartpole_swingup", method="tp", k=1.0)
+    result = read_result(path)
+    result.config = cfg.replace(num_learned=1)
+    write_result(folder / "a.h5", result)
+    (folder / "broken.h5").write_bytes(b"not hdf5")
+    assert main(["table", str(folder), "--table", "4.1"]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("| k = 1 |"))
+    assert "(1) / 0.99" in row
+    assert "1 complete results read; 1 incomplete or corrupt" in out
+
+
+def test_plot_writes_a_recording_of_the_curves(tiny_result, tmp_path):
+    from pipps.experiments.plot import curve, record
+
+    result, _ = tiny_result
+    mean, std = curve([result, result])
+    np.testing.assert_allclose(mean, [t.eval_return for t in result.trials])
+    np.testing.assert_allclose(std, 0.0)
+    out = record([result], tmp_path / "r.rrd")
+    assert out.read_bytes()[:4] == b"RRF2" and out.stat().st_size > 10_000
+
+
+# -- learning ----------------------------------------------------------------------------------------
+
+
+def test_quick_preset_learns():
+    """A shortened quick run (2 learned trials): the learned policies beat the random trial.
+
+    The random-action trial's evaluated return is ≈ 30 (the cost is ≈ 1 every step while the pole
+    hangs); a sign error or a broken backward pass leaves the learned trials there or worse.
+    """
+    result = run_experiment(resolve_config("quick", "cartpole_swingup", num_learned=2, method="tp"))
+    random_return = result.trials[0].eval_return
+    assert random_return > 28.0
+    assert min(t.eval_return for t in result.trials[1:]) < random_return - 3.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["tp", "pilco"])
+def test_quick_preset_end_to_end(tmp_path, method):
+    """`pipps run --preset quick` end to end: the schema, and learning improves the evaluated return."""
+    out = tmp_path / "quick.h5"
+    proc = subprocess.run([sys.executable, "-m", "pipps.cli", "run", "--preset", "quick", "--method", method,
+                           "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=1800)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert check_result(out) == "complete"
+    r = read_result(out)
+    assert len(r.trials) == r.config.num_trials == 6
+    assert r.trials[-1].eval_return < r.trials[0].eval_return - 10.0
+
+
+@pytest.mark.slow
+def test_sweep_killed_with_sigkill_resumes(tmp_path):
+    """A real kill: SIGKILL the sweep once its first result is complete, resume, compare."""
+    args = ["--table", "4.1", "--k", "1", "--methods", "tp", "--seeds", "2", "--preset", "quick"]
+    sets = [x for k, v in TINY.items() for x in ("--set", f"{k}={v}")]
+    killed = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "pipps.cli", "sweep", *args, *sets, "--out", str(killed)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    first = killed / "cartpole_swingup_angle_k1_tp_thesis_s0.h5"
+    deadline = time.time() + 600
+    while not is_complete(first) and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    proc.kill()
+    proc.wait()
+    subprocess.run([sys.executable, "-m", "pipps.cli", "sweep", *args, *sets, "--out", str(killed)], check=True,
+                   capture_output=True)
+    full = tmp_path / "full"
+    subprocess.run([sys.executable, "-m", "pipps.cli", "sweep", *args, *sets, "--out", str(full)], check=True,
+                   capture_output=True)
+    for name in os.listdir(full):
+        assert_same_results(read_result(full / name), read_result(killed / name))
