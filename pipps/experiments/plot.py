@@ -4,12 +4,13 @@
 
 * **learning curves** — evaluated return per trial for each (task, method, k, cost) group:
   the mean over seeds and the mean ± one standard deviation (timeline ``trial``), with the
-  success threshold;
+  success threshold (x: trial);
 * **predictions** — for one experiment per group, the final trial's predicted particle
   trajectories of the pole angle (or the PILCO Gaussian's mean ± 2 std) against the real
   rollout, in the (time, angle) plane;
 * **k_LR per step** and **gradient variances per step** (log₁₀ σ²_RP, σ²_LR), averaged over the
-  final trial's optimizer iterations (timeline ``time_step``).
+  final trial's optimizer iterations (x: time step). All panels share one sequence timeline,
+  ``index``, because a rerun time-series view follows the viewer's single active timeline.
 
 :func:`render_png` renders a recording with rerun's own viewer under ``xvfb-run``.
 """
@@ -27,6 +28,9 @@ from pipps.experiments.loop import ExperimentResult
 
 #: which model-state component is drawn in the predictions panel, and its label
 ANGLE_INDEX = {"cartpole_swingup": (3, "θ (rad)"), "cartpole_balance": (3, "θ (rad)"), "unicycle": (9, "pitch ψ_f (rad)")}
+#: one sequence timeline for every panel: the trial index in the learning curves, the time step in
+#: the k_LR and variance profiles (a time-series view follows the viewer's one active timeline)
+TIMELINE = "index"
 _PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
             (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
 
@@ -92,7 +96,7 @@ def _log_curves(rec, name: str, rs: list[ExperimentResult], color) -> None:
                 static=True)
     threshold = rs[0].config.success_threshold if rs[0].config.task != "unicycle" else None
     for i in range(n):
-        rec.set_time("trial", sequence=i)
+        rec.set_time(TIMELINE, sequence=i)
         rec.log(f"curves/{name}/mean", rr.Scalars([mean[i]]))
         rec.log(f"curves/{name}/lo", rr.Scalars([mean[i] - std[i]]))
         rec.log(f"curves/{name}/hi", rr.Scalars([mean[i] + std[i]]))
@@ -110,7 +114,7 @@ def _log_predictions(rec, name: str, r: ExperimentResult, color, offset: int) ->
     idx, _ = ANGLE_INDEX[r.config.task]
     dt = 0.1
     y0 = 8.0 * offset
-    rec.set_time("trial", sequence=final.index)
+    rec.set_time(TIMELINE, sequence=final.index)
     pred = final.predicted
     scale = 10.0  # time axis stretch so a 3 s episode is as wide as the angle range
     if "particles" in pred:
@@ -128,7 +132,7 @@ def _log_predictions(rec, name: str, r: ExperimentResult, color, offset: int) ->
     valid = np.concatenate([[True], final.valid.astype(bool)])
     real = final.states[valid][:, idx if r.config.task != "unicycle" else 10]
     t = np.arange(real.shape[0]) * dt * scale
-    rec.log(f"predictions/{name}/real", rr.LineStrips2D([np.stack([t, y0 - real], 1)], colors=[(0, 0, 0)], radii=[0.05],
+    rec.log(f"predictions/{name}/real", rr.LineStrips2D([np.stack([t, y0 - real], 1)], colors=[(255, 255, 255)], radii=[0.05],
                                                           labels=[f"{name}: real rollout"]))
 
 
@@ -145,7 +149,7 @@ def _log_diagnostics(rec, name: str, r: ExperimentResult, color) -> None:
                 static=True)
     with np.errstate(all="ignore"):
         for t in range(len(d["k_lr"])):
-            rec.set_time("time_step", sequence=t + 1)
+            rec.set_time(TIMELINE, sequence=t + 1)
             if np.isfinite(d["k_lr"][t]):
                 rec.log(f"diagnostics/k_lr/{name}", rr.Scalars([d["k_lr"][t]]))
             for part in ("rp", "lr"):
