@@ -306,6 +306,19 @@ def test_cli_rejects_bad_settings_and_tables(capsys):
     assert "momentum" in capsys.readouterr().err
 
 
+def test_cli_run_writes_the_result_and_shows_progress(tmp_path, capsys):
+    from pipps.cli import main
+
+    out = tmp_path / "run.h5"
+    sets = [x for k, v in TINY.items() for x in ("--set", f"{k}={v}")]
+    assert main(["run", "--preset", "quick", "--seed", "2", "--out", str(out), *sets]) == 0
+    cap = capsys.readouterr()
+    assert "trial 2/2" in cap.err and "policy step 6/6 objective" in cap.err and "ETA" in cap.err
+    r = read_result(out)
+    assert r.config.seed == 2 and r.config.num_particles == 8
+    assert f"final evaluated return {r.final_return:.3f}" in cap.out
+
+
 def test_cli_table_reads_results_and_skips_corrupt(tiny_result, tmp_path, capsys):
     from pipps.cli import main
 
