@@ -51,7 +51,8 @@ def rollout(
     ``policy`` maps the policy input ``x̃^o[P]`` (built from the *noisy* observation) to the
     control; ``None`` draws i.i.d. random actions ``U[-u_rand, u_rand]`` (no squashing).
     After the unicycle falls, the remaining transitions are marked invalid and their
-    costs are 0; the state is frozen so that nothing downstream sees a blown-up value.
+    costs are 0; the state is frozen so that nothing downstream sees a blown-up value. For a
+    task with a fall condition, a non-finite next state counts as a fall as well.
     """
     H = task.horizon if horizon is None else int(horizon)
     k0, k_obs, k_act = jax.random.split(key, 3)
@@ -70,7 +71,11 @@ def rollout(
         else:
             u = policy(task.policy_input(task.sim_to_model(o)))
         s_next = task.step(s, u)
-        fell = task.fallen(s_next) if task.fallen is not None else jnp.asarray(False)
+        if task.fallen is not None:
+            # a state the integrator could not carry (non-finite, deep in a fall) ends the episode too
+            fell = task.fallen(s_next) | ~jnp.all(jnp.isfinite(s_next))
+        else:
+            fell = jnp.asarray(False)
         valid = alive & ~fell
         c = jnp.where(valid, task.cost(task.sim_to_model(s_next)), 0.0)
         s_keep = jnp.where(valid, s_next, s)

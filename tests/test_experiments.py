@@ -247,6 +247,28 @@ def test_unicycle_evaluation_charges_fallen_steps():
     assert not np.asarray(upright).all()  # random torques topple it within 2 s
 
 
+def test_a_non_finite_state_ends_a_unicycle_episode_as_a_fall():
+    """An integrator that leaves the valid region mid-fall (NaN state) must end the episode, not
+    put NaN into the costs, the returns or the training data."""
+    import jax.numpy as jnp
+
+    from pipps.rollout import rollout, training_pairs
+    from pipps.tasks.presets import make_task
+    from pipps.tasks.unicycle import unicycle_ode
+
+    def brittle_ode(s, u):  # NaN once roll or pitch passes 0.3 rad, well before the ±π/2 fall check
+        return jnp.where(jnp.maximum(jnp.abs(s[7]), jnp.abs(s[10])) > 0.3, jnp.nan, unicycle_ode(s, u))
+
+    task = make_task("unicycle", "thesis", ode=brittle_ode)
+    trajs = jax.vmap(lambda k: rollout(task, k, None))(jax.random.split(jax.random.PRNGKey(0), 8))
+    valid = np.asarray(trajs.valid)
+    assert np.isfinite(np.asarray(trajs.costs)).all() and np.isfinite(np.asarray(trajs.states)).all()
+    assert (valid.sum(-1) < task.horizon).all()  # every episode ended early
+    for i in range(2):
+        x, y = training_pairs(task, jax.tree.map(lambda a: a[i], trajs))
+        assert np.isfinite(x).all() and np.isfinite(y).all() and len(x) == valid[i].sum()
+
+
 # -- sweeps ----------------------------------------------------------------------------------------
 
 
