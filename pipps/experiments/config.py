@@ -82,6 +82,7 @@ class ExperimentConfig:
     policy: str = "rbf"  # rbf (thesis), pilco_rbf, linear
     num_basis: int = 50
     policy_init: str = "start"  # start: centres ~ start distribution; uniform: the quick box
+    centre_std: float | None = None  # with policy_init=start: centres ~ N(start mean, centre_std²·I) instead
     log_lambda_init: tuple[float, ...] = (0.0,)  # one value or one per policy input
     weight_scale: float = 0.1
     # particle methods
@@ -172,6 +173,8 @@ def validate(c: ExperimentConfig) -> None:
     _need(c.policy in ("rbf", "pilco_rbf", "linear"), "policy", f"choose rbf, pilco_rbf or linear, got {c.policy!r}")
     _need(c.policy_init in ("start", "uniform"), "policy_init", f"choose start or uniform, got {c.policy_init!r}")
     _need(c.policy_init != "uniform" or c.task != "unicycle", "policy_init", "uniform centres are a cart-pole setting")
+    if c.centre_std is not None:
+        _need(finite(c.centre_std) and c.centre_std > 0, "centre_std", f"must be > 0, got {c.centre_std!r}")
     _need(len(c.log_lambda_init) >= 1 and all(finite(v) for v in c.log_lambda_init), "log_lambda_init",
           f"must be one or more finite numbers, got {c.log_lambda_init!r}")
     _need(finite(c.weight_scale) and c.weight_scale >= 0, "weight_scale", f"must be >= 0, got {c.weight_scale!r}")

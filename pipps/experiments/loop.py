@@ -129,6 +129,8 @@ def init_policy(key: jax.Array, cfg: ExperimentConfig, task: Task):
     if cfg.policy == "linear":
         return init_linear_policy(key, d, task.u_max)
     mean, cov = policy_start_moments(task)
+    if cfg.centre_std is not None:  # the author's demo: centres at the start mean plus N(0, 1) noise
+        cov = cfg.centre_std**2 * np.eye(d)
     if cfg.policy == "pilco_rbf":
         return init_pilco_rbf_policy(key, cfg.num_basis, mean, cov, task.u_max)
     if cfg.policy_init == "uniform":
