@@ -69,6 +69,7 @@ def assert_same_results(a, b):
         (dict(num_random=0), "num_random"),
         (dict(no_such_setting=1), "no_such_setting"),
         (dict(num_particles="many"), "num_particles"),
+        (dict(centre_std=0.0), "centre_std"),
     ],
 )
 def test_invalid_settings_fail_at_once_naming_the_setting(overrides, setting):
