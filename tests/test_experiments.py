@@ -93,6 +93,8 @@ def test_thesis_preset_is_the_thesis_protocol():
     assert (c.num_random, c.num_learned, c.num_particles, c.policy_evals) == (1, 15, 300, 600)
     assert (c.learning_rate, c.momentum, c.num_basis, c.eval_rollouts) == (5e-4, 0.9, 50, 30)
     assert (c.policy, c.policy_init, c.log_lambda_init, c.estimator_choices) == ("rbf", "start", (0.0,), "thesis")
+    assert c.centre_std == 1.0  # the documented departure (docs/results.md)
+    assert resolve_config("thesis", "cartpole_swingup", centre_std="none").centre_std is None
     assert c.success_threshold == 15.0
     u = resolve_config("thesis", "unicycle")
     assert (u.num_random, u.num_learned, u.policy) == (5, 30, "linear")
