@@ -95,6 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("results", nargs="*", default=["runs"], help="result files or folders (default: runs)")
     tb.add_argument("--table", default=None, help="one table (default: every table with results)")
     tb.add_argument("--preset", default=None, help="only results of this task preset (thesis or pilco)")
+    tb.add_argument("--curves", action="store_true", help="also print every result's evaluated return per trial")
 
     pl = sub.add_parser("plot", help="write a rerun recording (.rrd) of results; --png renders it")
     pl.add_argument("results", nargs="+", help="result files or folders")
@@ -216,7 +217,7 @@ def _result_paths(items):
 
 def _cmd_table(args) -> int:
     from pipps.experiments.results import ResultError, read_summary
-    from pipps.experiments.tables import TABLES, collect, get_table, render_table
+    from pipps.experiments.tables import TABLES, collect, get_table, render_curves, render_table
 
     try:
         paths = _result_paths(args.results)
@@ -237,6 +238,10 @@ def _cmd_table(args) -> int:
             print(render_table(t, cells))
             print()
             printed += 1
+    if args.curves and summaries:
+        print("Evaluated return per trial (trial 0 is the random trial):\n")
+        print(render_curves(summaries))
+        print()
     print(f"{len(summaries)} complete results read; {len(skipped)} incomplete or corrupt files not counted")
     for s in skipped:
         print(f"  not counted: {s}")

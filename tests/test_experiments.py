@@ -355,8 +355,10 @@ def test_cli_table_reads_results_and_skips_corrupt(tiny_result, tmp_path, capsys
     result.config = cfg.replace(num_learned=1)
     write_result(folder / "a.h5", result)
     (folder / "broken.h5").write_bytes(b"not hdf5")
-    assert main(["table", str(folder), "--table", "4.1"]) == 0
+    assert main(["table", str(folder), "--table", "4.1", "--curves"]) == 0
     out = capsys.readouterr().out
+    curve_row = next(line for line in out.splitlines() if line.startswith("| cartpole_swingup TP k=1 seed 0 |"))
+    assert curve_row.split("|")[3:5] == [f" {t.eval_return:.1f} " for t in result.trials]
     row = next(line for line in out.splitlines() if line.startswith("| k = 1 |"))
     assert "(1) / 0.99" in row
     assert "1 complete results read; 1 incomplete or corrupt" in out

@@ -237,3 +237,19 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
         if any(c and not c.startswith("—") for c in cells) or show_empty:
             lines.append(f"| {row} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def render_curves(summaries: list[dict[str, Any]]) -> str:
+    """Markdown: the evaluated return per trial of every result (one row each), seeds sorted."""
+    rows = sorted(summaries, key=lambda s: (s["config"].task, s["config"].method, s["config"].k, s["config"].seed))
+    if not rows:
+        return ""
+    n = max(len(s["eval_return"]) for s in rows)
+    lines = ["| experiment | success | " + " | ".join(str(i) for i in range(n)) + " | wall (min) |",
+             "|---" * (n + 3) + "|"]
+    for s in rows:
+        c = s["config"]
+        vals = [f"{v:.1f}" for v in s["eval_return"]] + [""] * (n - len(s["eval_return"]))
+        lines.append(f"| {c.task} {METHODS[c.method]} k={c.k:g} seed {c.seed} | {'yes' if s['success'] else 'no'} | "
+                     + " | ".join(vals) + f" | {s['wall_seconds'] / 60:.0f} |")
+    return "\n".join(lines)
