@@ -105,13 +105,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _progress_printer(stream=sys.stderr):
-    """A one-line progress display: trial, optimization step, current objective, ETA."""
+def _progress_printer(stream=None):
+    """A one-line progress display: trial, optimization step, current objective, ETA (on stderr by default)."""
     import time
 
     state = {"start": time.perf_counter(), "trial": 0, "trials": 1, "done_s": []}
 
     def show(event):
+        out = sys.stderr if stream is None else stream  # looked up per call: stderr may be replaced
         phase = event["phase"]
         if phase == "trial":
             state.update(trial=event["trial"], trials=event["trials"], t0=time.perf_counter())
@@ -123,13 +124,13 @@ def _progress_printer(stream=sys.stderr):
             eta = f" ETA {max(left, 0) * (sum(done[-3:]) / len(done[-3:])) / 60:.1f} min"
         head = f"\rtrial {state['trial'] + 1}/{state['trials']} [{elapsed / 60:5.1f} min{eta}]"
         if phase == "gp":
-            stream.write(f"{head} training GP on {event['points']} points".ljust(100))
+            out.write(f"{head} training GP on {event['points']} points".ljust(100))
         elif phase == "optimize":
-            stream.write(f"{head} policy step {event['step']}/{event['steps']} objective {event['objective']:.3f}".ljust(100))
+            out.write(f"{head} policy step {event['step']}/{event['steps']} objective {event['objective']:.3f}".ljust(100))
         elif phase == "evaluated":
             done.append(event["seconds"])
-            stream.write(f"{head} evaluated return {event['eval_return']:.3f} (upright {event['upright']:.0%})".ljust(100) + "\n")
-        stream.flush()
+            out.write(f"{head} evaluated return {event['eval_return']:.3f} (upright {event['upright']:.0%})".ljust(100) + "\n")
+        out.flush()
 
     return show
 
