@@ -179,6 +179,7 @@ class CellResult:
     seeds: list[int]
     mean_final_return: float
     mean_wall_seconds: float
+    mixed: tuple[str, ...] = ()  # settings (other than the seed) that differ between the cell's results
 
     @property
     def rate(self) -> float:
@@ -205,10 +206,12 @@ def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = 
         rows = [s for s in summaries if s["config"].task == table.task and _cell_key(values, cell.method, s["config"])
                 and (preset is None or s["config"].preset == preset)]
         n = len(rows)
+        dicts = [{k: v for k, v in r["config"].to_dict().items() if k != "seed"} for r in rows]
+        mixed = tuple(sorted(k for k in (dicts[0] if dicts else {}) if any(d[k] != dicts[0][k] for d in dicts)))
         out.append(CellResult(
             cell, sum(bool(s["success"]) for s in rows), n, sorted(s["config"].seed for s in rows),
             float(sum(s["final_return"] for s in rows) / n) if n else math.nan,
-            float(sum(s["wall_seconds"] for s in rows) / n) if n else math.nan))
+            float(sum(s["wall_seconds"] for s in rows) / n) if n else math.nan, mixed))
     return out
 
 
@@ -236,6 +239,10 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
             cells.append(f"{r.rate:.2f} [{lo:.2f}, {hi:.2f}] ({r.n}) / {thesis}{flag}")
         if any(c and not c.startswith("—") for c in cells) or show_empty:
             lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    for r in results:
+        if r.mixed:
+            lines.append(f"\nWarning: {r.cell.row}, {METHODS[r.cell.method]} pools results whose settings differ in "
+                         f"{', '.join(r.mixed)}; read them from separate folders.")
     return "\n".join(lines)
 
 
