@@ -27,7 +27,7 @@ import numpy as np
 
 import pipps  # noqa: F401
 from pipps.gp import GPConfig, GPHyper, full_posterior, make_data
-from pipps.particles.forward import RolloutConfig, reparameterized_objective, sample_noise
+from pipps.particles.forward import RolloutConfig, particle_rollout, reparameterized_objective, sample_noise
 from pipps.policies import init_rbf_policy
 from pipps.propagation.config import estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
@@ -48,7 +48,8 @@ def cartpole_model(n: int, seed: int = 0):
 
 
 VARIANTS = {
-    # name: (estimator name or None for autodiff, RolloutConfig overrides)
+    # name: (estimator name, None for autodiff or "forward" for the rollout alone, RolloutConfig overrides)
+    "forward only (rollout + model Jacobians)": ("forward", {}),
     "autodiff (jax.value_and_grad)": (None, {}),
     "rp": ("rp", {}),
     "rp −σ_f": ("rp", {"model_variance": False}),
@@ -65,6 +66,11 @@ VARIANTS = {
 
 def make_call(task, model, policy, name, overrides, P, T):
     cfg = RolloutConfig(num_particles=P, horizon=T, **overrides)
+    if name == "forward":
+        def fwd(key, pol):
+            return particle_rollout(task, pol, model, sample_noise(key, task, cfg), cfg, jacobian=True).objective
+
+        return jax.jit(fwd)
     if name is None:
         def f(key, pol):
             return jax.value_and_grad(lambda p: reparameterized_objective(task, p, model, sample_noise(key, task, cfg), cfg))(pol)
