@@ -36,8 +36,12 @@ _PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 
 
 
 def group_name(r: ExperimentResult) -> str:
+    from pipps.tasks.presets import DEFAULT_COST
+
     c = r.config
-    cost = c.cost or "default"
+    cost = c.cost or DEFAULT_COST[(c.task, c.preset)]
+    if c.centre_std is None and c.policy == "rbf" and c.policy_init == "start":
+        cost += "_startcentres"
     return f"{c.task}_{cost}_k{c.k:g}_{c.method}".replace("+", "plus").replace(".", "p")
 
 
