@@ -145,6 +145,8 @@ def test_table_counts_cells_and_flags_disagreement():
     assert "0.90 [0.60, 0.98] (10) / 0.99 !" in text and "0.10 [0.02, 0.40] (10) / 0.40 |" in text
     assert cells[("k = 4", "tp")].n == 0
     assert k1.mixed == () and "Warning" not in text
+    summaries[1] = dict(summaries[1], config=summaries[1]["config"].replace(cost=None))  # None ≡ the preset's angle
+    assert next(r for r in collect(TABLES["4.1"], summaries) if r.cell.row == "k = 1").mixed == ()
     summaries[0] = dict(summaries[0], config=summaries[0]["config"].replace(centre_std=None))
     mixed = collect(TABLES["4.1"], summaries)
     assert next(r for r in mixed if r.cell.row == "k = 1" and r.cell.method == "tp").mixed == ("centre_std",)

@@ -198,6 +198,16 @@ class CellResult:
         return lo <= self.cell.thesis <= hi
 
 
+def _settings(cfg: ExperimentConfig) -> dict[str, Any]:
+    """A configuration's settings other than the seed, with the default cost named (None ≡ the preset's)."""
+    from pipps.tasks.presets import DEFAULT_COST
+
+    d = {k: v for k, v in cfg.to_dict().items() if k != "seed"}
+    if d["cost"] is None:
+        d["cost"] = DEFAULT_COST[(cfg.task, cfg.preset)]
+    return d
+
+
 def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = None) -> list[CellResult]:
     """Group result summaries (:func:`pipps.experiments.results.read_summary`) into the table's cells."""
     out = []
@@ -206,7 +216,7 @@ def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = 
         rows = [s for s in summaries if s["config"].task == table.task and _cell_key(values, cell.method, s["config"])
                 and (preset is None or s["config"].preset == preset)]
         n = len(rows)
-        dicts = [{k: v for k, v in r["config"].to_dict().items() if k != "seed"} for r in rows]
+        dicts = [_settings(r["config"]) for r in rows]
         mixed = tuple(sorted(k for k in (dicts[0] if dicts else {}) if any(d[k] != dicts[0][k] for d in dicts)))
         out.append(CellResult(
             cell, sum(bool(s["success"]) for s in rows), n, sorted(s["config"].seed for s in rows),
