@@ -31,7 +31,7 @@ from pipps.experiments.results import (
     read_summary,
     write_result,
 )
-from pipps.experiments.sweep import experiment_name, run_sweep
+from pipps.experiments.sweep import experiment_name, run_sweep, worker_pool
 from pipps.experiments.tables import TABLES, collect, render_table, table_configs, wilson_interval
 
 TINY = dict(num_learned=1, num_particles=8, policy_evals=6, eval_rollouts=3, gp_max_iters=10, progress_chunk=3,
@@ -303,6 +303,18 @@ def test_killed_and_resumed_sweep_equals_uninterrupted(tiny_result, tmp_path):
         assert_same_results(read_result(tmp_path / "full" / name), read_result(part / name))
     again = run_sweep(cfgs, part, jobs=1)
     assert again.ran == [] and len(again.skipped) == 2
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs Linux CPU affinity and two CPUs")
+def test_sweep_workers_are_pinned_to_distinct_cpus():
+    """XLA sizes its thread pool from the CPU affinity; two jobs must not each run two threads."""
+    with worker_pool(2) as pool:
+        for f in [pool.submit(time.sleep, 0.5) for _ in range(4)]:
+            f.result()
+        pinned = [os.sched_getaffinity(pid) for pid in pool._processes]
+    assert len(pinned) == 2 and all(len(c) == 1 for c in pinned)
+    assert pinned[0] != pinned[1]
 
 
 # -- CLI ---------------------------------------------------------------------------------------------

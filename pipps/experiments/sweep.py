@@ -8,9 +8,11 @@ killed sweep loses at most the experiments in flight, and because every experime
 deterministic function of its configuration, a killed-and-resumed sweep gives the same results
 as an uninterrupted one.
 
-Workers are separate processes (``spawn``: JAX does not survive ``fork``); with more than one
-job each worker's XLA CPU backend is limited to one intra-op thread so jobs do not fight over
-cores.
+Workers are separate processes (``spawn``: JAX does not survive ``fork``). With more than one
+job, each worker pins itself to one CPU of the sweep's own CPU set (round robin; Linux
+``sched_setaffinity``), and XLA sizes its CPU thread pool from that affinity, so jobs do not
+fight over cores. (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false`` does not do this on
+jaxlib 0.10: a process with it still ran two threads, measured in docs/performance.md.)
 """
 
 from __future__ import annotations
@@ -26,7 +28,22 @@ from typing import Callable, Iterable
 
 from pipps.experiments.config import ExperimentConfig
 
-SINGLE_THREAD_XLA = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+def _pin_worker(counter, cpus: tuple[int, ...]) -> None:
+    """Pool initializer: pin this worker to the next CPU of ``cpus`` before JAX starts."""
+    with counter.get_lock():
+        slot = counter.value
+        counter.value += 1
+    if cpus and hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {cpus[slot % len(cpus)]})
+
+
+def worker_pool(jobs: int) -> cf.ProcessPoolExecutor:
+    """``jobs`` spawn workers, each pinned to one CPU of this process's CPU set (see module doc)."""
+    ctx = mp.get_context("spawn")
+    cpus = tuple(sorted(os.sched_getaffinity(0))) if hasattr(os, "sched_getaffinity") else ()
+    return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_pin_worker,
+                                  initargs=(ctx.Value("i", 0), cpus))
 
 
 def experiment_name(cfg: ExperimentConfig) -> str:
@@ -103,16 +120,8 @@ def run_sweep(
         for cfg, path in todo:
             record(*_run_one(cfg, str(path)))
     elif todo:
-        saved = os.environ.get("XLA_FLAGS")
-        os.environ["XLA_FLAGS"] = f"{saved or ''} {SINGLE_THREAD_XLA}".strip()
-        try:
-            with cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-                futures = [pool.submit(_run_one, cfg, str(path)) for cfg, path in todo]
-                for fut in cf.as_completed(futures):
-                    record(*fut.result())
-        finally:
-            if saved is None:
-                os.environ.pop("XLA_FLAGS", None)
-            else:
-                os.environ["XLA_FLAGS"] = saved
+        with worker_pool(jobs) as pool:
+            futures = [pool.submit(_run_one, cfg, str(path)) for cfg, path in todo]
+            for fut in cf.as_completed(futures):
+                record(*fut.result())
     return SweepReport(ran, [str(p) for p in done], failed, time.perf_counter() - start)
