@@ -12,6 +12,7 @@ interquartile range of wall seconds, ``block_until_ready``). Ratios are to RP.
 
     JAX_PLATFORMS=cpu python benchmarks/estimator_speed.py            # the documented numbers
     JAX_PLATFORMS=cpu python benchmarks/estimator_speed.py --quick    # a smoke run
+    JAX_PLATFORMS=cpu taskset -c 0 python benchmarks/estimator_speed.py --only forward,tp --repeats 7  # one core
 """
 
 from __future__ import annotations
@@ -103,6 +104,7 @@ def main(argv=None):
     ap.add_argument("--data", type=int, default=300)
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--quick", action="store_true", help="P=50, N=50, T=10, 3 repeats")
+    ap.add_argument("--only", default="", help="comma-separated first words of the variants to time, e.g. forward,rp,tp,lr")
     args = ap.parse_args(argv)
     if args.quick:
         args.particles, args.data, args.horizon, args.repeats = 50, 50, 10, 3
@@ -112,7 +114,10 @@ def main(argv=None):
     print(f"# estimator speed: P={args.particles}, T={args.horizon}, N={args.data}, D=4, Dz=5, RBF 50 centres")
     print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, {jax.devices()[0].platform}")
     results = {}
+    only = {w for w in args.only.split(",") if w}
     for label, (name, overrides) in VARIANTS.items():
+        if only and label.split()[0] not in only | {"rp"}:  # RP is the ratios' reference
+            continue
         fn = make_call(task, model, policy, name, overrides, args.particles, args.horizon)
         results[label] = time_call(fn, policy, args.repeats)
     rp = results["rp"][0]

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from pipps.particles.models import model_output, noise_variance
+from pipps.particles.models import PRECISIONS, model_output, noise_variance
 from pipps.tasks.base import Task
 
 RESAMPLING = ("none", "gaussian")
@@ -41,6 +41,8 @@ class RolloutConfig:
       noise_multiplier: factor on σ_n² (the ``+σ_n`` variant: 100 for TP, 25 for GTP).
       resampling: "none" or "gaussian" (GR, estimators.md §7).
       resample_jitter: added to the diagonal of the GR covariance before its Cholesky.
+      variance_precision: "float64" or "float32", the precision of the GP variance's
+        O(P·E·M²) product (:func:`pipps.particles.models.model_output`).
     """
 
     num_particles: int = 300
@@ -49,6 +51,7 @@ class RolloutConfig:
     noise_multiplier: float = 1.0
     resampling: str = "none"
     resample_jitter: float = 1e-10
+    variance_precision: str = "float64"
 
     def __post_init__(self):
         if int(self.num_particles) < 2:
@@ -59,6 +62,8 @@ class RolloutConfig:
             raise ValueError(f"noise_multiplier must be positive and finite, got {self.noise_multiplier}")
         if self.resampling not in RESAMPLING:
             raise ValueError(f"resampling must be one of {RESAMPLING}, got {self.resampling!r}")
+        if self.variance_precision not in PRECISIONS:
+            raise ValueError(f"variance_precision must be one of {PRECISIONS}, got {self.variance_precision!r}")
 
     def steps(self, task: Task) -> int:
         return task.horizon if self.horizon is None else int(self.horizon)
@@ -127,7 +132,7 @@ def gaussian_resample(mean: jax.Array, std: jax.Array, eps: jax.Array, jitter: f
 def particle_step(task: Task, policy, model, config: RolloutConfig, x, eps, *, jacobian: bool):
     """One step of Algorithm 3 for all particles. Returns the record entries of this step."""
     u, z = model_input(task, policy, x)
-    out = model_output(model, z, variance=config.model_variance, jacobian=jacobian)
+    out = model_output(model, z, variance=config.model_variance, jacobian=jacobian, precision=config.variance_precision)
     mean = x + out.mean
     noise_var = config.noise_multiplier * noise_variance(model)
     var = noise_var[None, :] + (out.var if config.model_variance else 0.0)
