@@ -102,6 +102,31 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--out", default="pipps.rrd", help="recording to write")
     pl.add_argument("--png", default=None, help="also render the recording to this PNG (needs xvfb-run)")
     pl.add_argument("--size", default="1600x1000", help="PNG window size WxH")
+
+    st = sub.add_parser("study", help="gradient studies on a policy snapshot from a result file (docs/gradients.md)")
+    studies = st.add_subparsers(dest="study", required=True)
+    for name, text in (("landscape", "objective and each estimator's gradient along θ + Δ·d (thesis Fig. 4.2)"),
+                       ("variance", "gradient variance against the number of particles (thesis Fig. 4.13)")):
+        p = studies.add_parser(name, help=text)
+        p.add_argument("result", help="a result file of a cart-pole run (pipps run/sweep)")
+        p.add_argument("--trial", type=_positive_int, default=None,
+                       help="learned trial whose optimisation start is the snapshot (default: the last full-GP one)")
+        p.add_argument("--estimators", default=None, help="comma-separated: rp, lr_plain, lr (BIW), tp, gtp, glr, del")
+        p.add_argument("--repeats", type=_int_at_least(2), default=None, help="independent estimates per point")
+        p.add_argument("--direction", default="pilco", choices=["pilco", "random"],
+                       help="pilco: the moment-matching descent direction (the thesis'); random: a random unit vector")
+        p.add_argument("--choices", default="library", choices=["library", "thesis"],
+                       help="library (unbiased) or the thesis' own baseline and k_LR")
+        p.add_argument("--seed", type=_nonnegative_int, default=0)
+        p.add_argument("--out", default=None, help=f"HDF5 output (default: study_{name}.h5)")
+        p.add_argument("--rrd", default=None, help="rerun recording (default: the --out name with .rrd)")
+        p.add_argument("--quick", action="store_true", help="a small version that runs in well under a minute")
+        if name == "landscape":
+            p.add_argument("--particles", type=_int_at_least(2), default=None, help="P (default 1000)")
+            p.add_argument("--deltas", default=None, help="START:STOP:NUM grid of Δ (default 0:1.5:16)")
+        else:
+            p.add_argument("--particles", default=None, help="comma-separated P values (default 10,30,100,300,1000)")
+            p.add_argument("--deltas", default=None, help="comma-separated Δ values (default 0,1.5: smooth, chaotic)")
     return parser
 
 
@@ -275,6 +300,62 @@ def _cmd_plot(args) -> int:
     return 0
 
 
+def _default_trial(path) -> int:
+    from pipps.experiments.results import read_result
+
+    r = read_result(path)
+    ok = [t.index for t in r.trials if t.kind == "learned" and not (t.gp_info or {}).get("sparse", False)]
+    if not ok:
+        raise ValueError(f"{path} has no learned full-GP trial")
+    return ok[-1]
+
+
+def _cmd_study(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from pipps.experiments.results import ResultError
+    from pipps.studies import gradients as g
+    from pipps.studies.snapshot import load_snapshot
+
+    landscape = args.study == "landscape"
+    quick = {"estimators": "rp,tp", "repeats": 3, "direction": "random"}
+    quick.update({"particles": 30, "deltas": "0:1.5:3"} if landscape else {"particles": "10,30", "deltas": "0,1.5"})
+    full = {"estimators": ",".join(g.DEFAULT_ESTIMATORS) if landscape else "rp,lr_plain,lr,tp",
+            "repeats": 10 if landscape else 30}
+    full.update({"particles": 1000, "deltas": "0:1.5:16"} if landscape else {"particles": "10,30,100,300,1000", "deltas": "0,1.5"})
+    value = lambda k: getattr(args, k) if getattr(args, k) is not None else (quick if args.quick else full)[k]  # noqa: E731
+    direction = "random" if args.quick and args.direction == "pilco" else args.direction
+    try:
+        if landscape:
+            parts = value("deltas").split(":")
+            if len(parts) != 3:
+                raise ValueError(f"--deltas: expected START:STOP:NUM, got {value('deltas')!r}")
+            deltas = np.linspace(float(parts[0]), float(parts[1]), int(parts[2]))
+        else:
+            deltas = np.array([float(x) for x in value("deltas").split(",")])
+            particles = [int(x) for x in str(value("particles")).split(",")]
+        trial = args.trial if args.trial is not None else _default_trial(args.result)
+        snap = load_snapshot(args.result, trial)
+        common = dict(estimators=value("estimators").split(","), repeats=value("repeats"), direction=direction,
+                      seed=args.seed, choices=args.choices, progress=lambda msg: print(f"  {msg}", file=sys.stderr))
+        if landscape:
+            result = g.landscape(snap, deltas=deltas, particles=value("particles"), **common)
+        else:
+            result = g.variance_study(snap, deltas=deltas, particles=particles, **common)
+    except (ValueError, FileNotFoundError, ResultError) as err:
+        print(f"pipps study {args.study}: error: {err}", file=sys.stderr)
+        return 2
+    out = args.out or f"study_{args.study}.h5"
+    rrd = args.rrd or str(Path(out).with_suffix(".rrd"))
+    g.write_study(out, result)
+    (g.record_landscape if landscape else g.record_variance)(result, rrd)
+    print(g.landscape_table(result) if landscape else g.variance_table(result))
+    print(f"\nwrote {out} and {rrd} ({result.seconds:.0f} s)")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "rollout":
@@ -286,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  episode {i}: return (total cost) {ret:.4f} over {n} steps")
         print(f"  mean return {rep.returns.mean():.4f}")
         return 0
-    handlers = {"run": _cmd_run, "sweep": _cmd_sweep, "table": _cmd_table, "plot": _cmd_plot}
+    handlers = {"run": _cmd_run, "sweep": _cmd_sweep, "table": _cmd_table, "plot": _cmd_plot, "study": _cmd_study}
     return handlers[args.command](args)
 
 

@@ -1,0 +1,98 @@
+"""A policy snapshot taken during a real training run, with the model it was optimised on.
+
+A result file stores, per trial, the true trajectories, the trained GP hyperparameters and the
+policy the trial ran. :func:`load_snapshot` rebuilds, for a learned trial ``k``, exactly what
+that trial's policy optimisation saw at its start: the GP posterior from the data of trials
+``0..k−1`` with trial ``k``'s hyperparameters (padded like the loop pads), and the policy it
+started from (the one trial ``k − 1`` ran). FITC trials cannot be rebuilt: their inducing inputs
+are not stored, and :func:`load_snapshot` says so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from pipps.experiments.config import ExperimentConfig
+from pipps.gp import GPHyper, GPPosterior, full_posterior, make_data, pad_to_capacity
+from pipps.tasks.base import Task
+
+
+@dataclasses.dataclass
+class Snapshot:
+    """Everything a gradient study needs about one trial of one experiment."""
+
+    source: str  # the result file
+    trial: int  # the learned trial whose optimisation start this is
+    config: ExperimentConfig
+    task: Task
+    policy: object  # policy pytree at the start of the trial's optimisation
+    model: GPPosterior  # the trial's model
+    num_points: int  # real GP training points
+    programs: dict = dataclasses.field(default_factory=dict, repr=False)  # compiled study programs, reused
+
+    def program(self, key, build):
+        """The compiled program ``key``, built by ``build()`` on first use (studies reuse them)."""
+        if key not in self.programs:
+            self.programs[key] = build()
+        return self.programs[key]
+
+    @property
+    def theta(self) -> jax.Array:
+        return ravel_pytree(self.policy)[0]
+
+    def unravel(self, flat: jax.Array):
+        return ravel_pytree(self.policy)[1](flat)
+
+
+def load_snapshot(path: str | os.PathLike, trial: int) -> Snapshot:
+    """The policy and model at the start of learned trial ``trial``'s optimisation (module doc).
+
+    Raises:
+      ValueError: ``trial`` is not a learned trial of the file, or the trial used FITC.
+    """
+    from pipps.experiments.loop import gp_config, init_policy, make_experiment_task
+    from pipps.experiments.results import read_result
+    from pipps.rollout import Trajectory, training_pairs
+
+    result = read_result(path)
+    cfg = result.config
+    learned = [t.index for t in result.trials if t.kind == "learned"]
+    if trial not in learned:
+        raise ValueError(f"trial {trial} is not a learned trial of {path} (learned trials: {learned})")
+    t = result.trials[trial]
+    if t.gp_info is not None and bool(t.gp_info.get("sparse", False)):
+        raise ValueError(f"trial {trial} of {path} used a FITC model, whose inducing inputs are not stored; "
+                         f"pick a trial with at most fitc_threshold={cfg.fitc_threshold} points")
+    task = make_experiment_task(cfg)
+    xs, ys = [], []
+    for prev in result.trials[:trial]:
+        traj = Trajectory(*(jnp.asarray(getattr(prev, n)) for n in ("states", "observations", "actions", "costs", "valid")))
+        a, b = training_pairs(task, traj)
+        xs.append(a)
+        ys.append(b)
+    data = pad_to_capacity(make_data(np.concatenate(xs), np.concatenate(ys)), chunk=cfg.gp_chunk)
+    hyper = GPHyper(*(jnp.asarray(t.gp_hyper[n]) for n in ("log_lengthscale", "log_signal", "log_noise")))
+    model, _, ok = full_posterior(hyper, data, gp_config(cfg))
+    if not bool(np.all(np.asarray(ok))):
+        raise FloatingPointError(f"the posterior Cholesky of trial {trial} failed on rebuilding")
+    _, unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task))
+    policy = unravel(jnp.asarray(result.trials[trial - 1].policy))
+    return Snapshot(str(path), trial, cfg, task, policy, model, int(sum(len(a) for a in xs)))
+
+
+def pilco_direction(snap: Snapshot) -> jax.Array:
+    """The unit descent direction of PILCO's moment-matching objective at the snapshot, ``−∇J/‖∇J‖``
+    (flat, like :attr:`Snapshot.theta`): the thesis' choice of direction for the landscape."""
+    from pipps.pilco.propagate import objective
+
+    g = jax.grad(lambda th: objective(snap.task, snap.unravel(th), snap.model))(snap.theta)
+    norm = jnp.linalg.norm(g)
+    if not bool(jnp.isfinite(norm)) or float(norm) == 0.0:
+        raise FloatingPointError(f"the moment-matching gradient at the snapshot is {float(norm)}; pick another direction")
+    return -g / norm
