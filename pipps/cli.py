@@ -127,6 +127,22 @@ def build_parser() -> argparse.ArgumentParser:
         else:
             p.add_argument("--particles", default=None, help="comma-separated P values (default 10,30,100,300,1000)")
             p.add_argument("--deltas", default=None, help="comma-separated Δ values (default 0,1.5: smooth, chaotic)")
+
+    bn = sub.add_parser("bench", help="run time against gradient error per estimator and P, and the Pareto table")
+    bn.add_argument("result", help="a result file of a cart-pole run (the snapshot, as for pipps study)")
+    bn.add_argument("--trial", type=_positive_int, default=None, help="learned trial (default: the last full-GP one)")
+    bn.add_argument("--estimators", default=None, help="comma-separated (default rp,lr,tp,gtp)")
+    bn.add_argument("--particles", default=None, help="comma-separated P values (default 30,100,300,1000)")
+    bn.add_argument("--deltas", default=None, help="comma-separated Δ values (default 0,1.5: smooth, chaotic)")
+    bn.add_argument("--repeats", type=_int_at_least(2), default=None, help="estimates per entry for its MSE (default 20)")
+    bn.add_argument("--reference-repeats", type=_int_at_least(2), default=None,
+                    help="estimates averaged into the reference gradient (default 50)")
+    bn.add_argument("--reference", default="tp", help="the unbiased estimator of the reference (at the largest P)")
+    bn.add_argument("--direction", default="pilco", choices=["pilco", "random"])
+    bn.add_argument("--seed", type=_nonnegative_int, default=0)
+    bn.add_argument("--out", default="bench.h5", help="HDF5 output")
+    bn.add_argument("--rrd", default=None, help="rerun recording (default: the --out name with .rrd)")
+    bn.add_argument("--quick", action="store_true", help="a small version that runs in well under a minute")
     return parser
 
 
@@ -356,6 +372,37 @@ def _cmd_study(args) -> int:
     return 0
 
 
+def _cmd_bench(args) -> int:
+    from pathlib import Path
+
+    from pipps.experiments.results import ResultError
+    from pipps.studies import bench as b
+    from pipps.studies.snapshot import load_snapshot
+
+    quick = {"estimators": "rp,tp", "particles": "20", "deltas": "0,1.5", "repeats": 3, "reference_repeats": 4}
+    full = {"estimators": "rp,lr,tp,gtp", "particles": "30,100,300,1000", "deltas": "0,1.5", "repeats": 20,
+            "reference_repeats": 50}
+    value = lambda k: getattr(args, k) if getattr(args, k) is not None else (quick if args.quick else full)[k]  # noqa: E731
+    try:
+        trial = args.trial if args.trial is not None else _default_trial(args.result)
+        snap = load_snapshot(args.result, trial)
+        result = b.bench(
+            snap, deltas=[float(x) for x in value("deltas").split(",")],
+            particles=[int(x) for x in value("particles").split(",")], estimators=value("estimators").split(","),
+            repeats=value("repeats"), reference=args.reference, reference_repeats=value("reference_repeats"),
+            time_repeats=2 if args.quick else 5, direction="random" if args.quick else args.direction, seed=args.seed,
+            progress=lambda msg: print(f"  {msg}", file=sys.stderr))
+    except (ValueError, FileNotFoundError, ResultError) as err:
+        print(f"pipps bench: error: {err}", file=sys.stderr)
+        return 2
+    rrd = args.rrd or str(Path(args.out).with_suffix(".rrd"))
+    b.write_bench(args.out, result)
+    b.record_bench(result, rrd)
+    print(b.bench_table(result))
+    print(f"\nwrote {args.out} and {rrd} ({result.seconds:.0f} s)")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "rollout":
@@ -367,7 +414,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  episode {i}: return (total cost) {ret:.4f} over {n} steps")
         print(f"  mean return {rep.returns.mean():.4f}")
         return 0
-    handlers = {"run": _cmd_run, "sweep": _cmd_sweep, "table": _cmd_table, "plot": _cmd_plot, "study": _cmd_study}
+    handlers = {"run": _cmd_run, "sweep": _cmd_sweep, "table": _cmd_table, "plot": _cmd_plot, "study": _cmd_study,
+                "bench": _cmd_bench}
     return handlers[args.command](args)
 
 

@@ -104,3 +104,38 @@ def test_cli_landscape_quick_writes_the_documented_file(tmp_path, capsys):
 def test_cli_study_errors_name_the_problem(argv, needle, capsys):
     assert main(["study", "landscape", str(RESULT), "--quick", *argv]) == 2
     assert needle in capsys.readouterr().err
+
+
+def test_bench_pareto_front_and_errors():
+    from pipps.studies.bench import BenchEntry, pareto
+
+    es = [BenchEntry("rp", 10, 0.01, 5.0, 0, 0), BenchEntry("rp", 30, 0.02, 1.0, 0, 0),
+          BenchEntry("tp", 10, 0.015, 6.0, 0, 0), BenchEntry("tp", 30, 0.03, 0.5, 0, 0),
+          BenchEntry("lr", 30, 0.03, 2.0, 0, 0), BenchEntry("del", 30, 0.01, float("nan"), 0, 3)]
+    assert [(e.estimator, e.particles) for e in pareto(es)] == [("rp", 10), ("rp", 30), ("tp", 30)]
+
+
+def test_bench_mse_is_measured_against_the_reference(snap):
+    """With the reference estimator itself at the reference P, the MSE of one estimate is its covariance
+    trace plus the reference's own error: E‖ĝ − ḡ‖² = tr C (1 + 1/n) for independent draws. (Plain LR:
+    its gradients are light-tailed; RP's are heavy-tailed on this model even at Δ = 0, where one
+    outlier among the reference draws dominates both sides.)"""
+    from pipps.studies.bench import bench
+
+    r = bench(snap, deltas=[0.0], particles=[40], estimators=["lr_plain"], repeats=24, reference="lr_plain",
+              reference_repeats=24, time_repeats=1, direction="random")
+    e, ref_err = r.entries[0][0], r.reference_error[0]
+    expected = ref_err * 24 * (1 + 1 / 24)  # tr C = n · tr Cov[g_ref]
+    assert abs(e.mse - expected) < 3 * e.mse_se + 0.5 * expected, (e.mse, expected, e.mse_se)
+    assert e.seconds > 0 and r.mm_seconds > 0
+
+
+def test_cli_bench_quick(tmp_path, capsys):
+    out = tmp_path / "b.h5"
+    assert main(["bench", str(RESULT), "--trial", str(TRIAL), "--quick", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| error target (MSE ≤) | fastest |" in text and "PILCO (exact MM gradient)" in text
+    with h5py.File(out, "r") as f:
+        assert f.attrs["study"] == "bench" and f["reference"].shape[0] == 2
+        assert list(f["entries/delta_000/particles"][()]) == [20, 20]
+    assert (tmp_path / "b.rrd").stat().st_size > 0

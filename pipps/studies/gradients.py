@@ -56,9 +56,14 @@ def _estimator_program(snap: Snapshot, name: str, P: int, choices: str):
     return snap.program(("estimator", name, P, choices), lambda: _build_estimator_program(snap, name, P, choices))
 
 
-def _build_estimator_program(snap: Snapshot, name: str, P: int, choices: str):
+def estimator_setup(snap: Snapshot, name: str, P: int, choices: str):
+    """(Estimator, RolloutConfig) of a named estimator at P particles on the snapshot's horizon."""
     est = thesis_estimator(name) if choices == "thesis" else estimator(name)
-    rcfg = RolloutConfig(num_particles=P, horizon=snap.config.horizon)
+    return est, RolloutConfig(num_particles=P, horizon=snap.config.horizon)
+
+
+def _build_estimator_program(snap: Snapshot, name: str, P: int, choices: str):
+    est, rcfg = estimator_setup(snap, name, P, choices)
     task, model = snap.task, snap.model
 
     @jax.jit
