@@ -86,7 +86,13 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--seed-start", type=_nonnegative_int, default=0)
     sw.add_argument("--methods", default=None, help="comma-separated subset of the table's methods")
     sw.add_argument("--k", dest="ks", default=None, help="comma-separated subset of the table's k values")
-    sw.add_argument("--jobs", type=_positive_int, default=1, help="parallel worker processes")
+    sw.add_argument("--jobs", type=_positive_int, default=1,
+                    help="parallel worker processes (local) or Ray tasks in flight (ray)")
+    sw.add_argument("--backend", default="local", choices=["local", "ray"],
+                    help="local worker processes, or tasks on a Ray cluster (needs pipps[ray])")
+    sw.add_argument("--address", default=None,
+                    help="Ray cluster address (ray://HOST:10001 or auto; default: a local Ray instance); "
+                         "--out must be a folder every node sees")
     sw.add_argument("--out", default="runs", help="result folder (one file per experiment)")
     sw.add_argument("--dry-run", action="store_true", help="list what would run and what is already complete")
     _add_experiment_options(sw, single=False)
@@ -210,9 +216,18 @@ def _cmd_run(args) -> int:
 
 def _cmd_sweep(args) -> int:
     from pipps.experiments.config import ConfigError
-    from pipps.experiments.sweep import plan, run_sweep
+    from pipps.experiments.sweep import import_ray, plan, run_sweep
     from pipps.experiments.tables import table_configs
 
+    if args.address is not None and args.backend != "ray":
+        print("pipps sweep: error: --address needs --backend ray", file=sys.stderr)
+        return 2
+    if args.backend == "ray":
+        try:
+            import_ray()
+        except ImportError as err:
+            print(f"pipps sweep: error: --backend ray: {err}", file=sys.stderr)
+            return 2
     try:
         methods = args.methods.split(",") if args.methods else None
         ks = [float(k) for k in args.ks.split(",")] if args.ks else None
@@ -226,7 +241,7 @@ def _cmd_sweep(args) -> int:
         return 2
     todo, done = plan(configs, args.out)
     print(f"{len(configs)} experiments: {len(done)} already complete, {len(todo)} to run with {args.jobs} job(s) "
-          f"-> {args.out}/", file=sys.stderr)
+          f"({args.backend}) -> {args.out}/", file=sys.stderr)
     if args.dry_run:
         for _, path in todo:
             print(f"  run  {path}")
@@ -236,7 +251,8 @@ def _cmd_sweep(args) -> int:
         status = "FAILED " + err.splitlines()[0] if err else "done"
         print(f"[{finished}/{total}] {status}: {path}", file=sys.stderr, flush=True)
 
-    report = run_sweep(configs, args.out, jobs=args.jobs, on_done=on_done)
+    report = run_sweep(configs, args.out, jobs=args.jobs, on_done=on_done, backend=args.backend,
+                       address=args.address)
     print(f"ran {len(report.ran)}, skipped {len(report.skipped)} complete, failed {len(report.failed)} "
           f"in {report.seconds / 60:.1f} min")
     return 1 if report.failed else 0

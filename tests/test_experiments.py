@@ -31,7 +31,7 @@ from pipps.experiments.results import (
     read_summary,
     write_result,
 )
-from pipps.experiments.sweep import experiment_name, run_sweep, worker_pool
+from pipps.experiments.sweep import experiment_name, ray_task, run_sweep, worker_pool
 from pipps.experiments.tables import TABLES, collect, render_table, table_configs, wilson_interval
 
 TINY = dict(num_learned=1, num_particles=8, policy_evals=6, eval_rollouts=3, gp_max_iters=10, progress_chunk=3,
@@ -282,10 +282,18 @@ def test_a_non_finite_state_ends_a_unicycle_episode_as_a_fall():
 # -- sweeps ----------------------------------------------------------------------------------------
 
 
-def test_killed_and_resumed_sweep_equals_uninterrupted(tiny_result, tmp_path):
+@pytest.fixture(scope="module")
+def local_pair(tmp_path_factory):
+    """Two tiny experiments swept by the local backend with two workers: the reference results."""
     cfgs = [tiny(seed=0), tiny(seed=1, method="rp")]
-    full = run_sweep(cfgs, tmp_path / "full", jobs=2)
+    out = tmp_path_factory.mktemp("full")
+    full = run_sweep(cfgs, out, jobs=2)
     assert not full.failed and len(full.ran) == 2
+    return cfgs, out
+
+
+def test_killed_and_resumed_sweep_equals_uninterrupted(local_pair, tiny_result, tmp_path):
+    cfgs, full = local_pair
     # "killed": the first experiment had finished (the worker's own writer produced its file),
     # the second was in flight (its file says running)
     part = tmp_path / "resumed"
@@ -300,7 +308,7 @@ def test_killed_and_resumed_sweep_equals_uninterrupted(tiny_result, tmp_path):
     assert first.stat().st_mtime_ns == stamp  # not rerun
     for cfg in cfgs:
         name = f"{experiment_name(cfg)}.h5"
-        assert_same_results(read_result(tmp_path / "full" / name), read_result(part / name))
+        assert_same_results(read_result(full / name), read_result(part / name))
     again = run_sweep(cfgs, part, jobs=1)
     assert again.ran == [] and len(again.skipped) == 2
 
@@ -317,6 +325,78 @@ def test_sweep_workers_are_pinned_to_distinct_cpus():
     assert pinned[0] != pinned[1]
 
 
+# -- the Ray backend, on a local Ray instance started by the test ----------------------------------
+
+
+@pytest.fixture
+def ray_session():
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False)
+    yield ray
+    ray.shutdown()
+
+
+def test_ray_sweep_equals_local_sweep_resumes_and_reruns_skip(local_pair, tmp_path):
+    """Two experiments on Ray (one missing, one half-written) equal the local backend's; a complete
+    file is skipped untouched; run_sweep shuts down the local Ray instance it started."""
+    ray = pytest.importorskip("ray")
+    cfgs, local = local_pair
+    paths = [tmp_path / f"{experiment_name(cfg)}.h5" for cfg in cfgs]
+    reference = [read_result(local / p.name) for p in paths]
+    write_result(paths[1], type(reference[1])(cfgs[1], reference[1].trials[:1], "running"))
+    complete_cfg = tiny(seed=2)
+    complete = tmp_path / f"{experiment_name(complete_cfg)}.h5"
+    write_result(complete, type(reference[0])(complete_cfg, reference[0].trials, "complete"))
+    stamp = complete.stat().st_mtime_ns
+    assert not ray.is_initialized()
+    ended = []
+    report = run_sweep([*cfgs, complete_cfg], tmp_path, jobs=2, backend="ray",
+                       on_done=lambda path, err, finished, total: ended.append((path, finished, total)))
+    assert not report.failed and report.skipped == [str(complete)]
+    assert sorted(report.ran) == sorted(map(str, paths))
+    assert sorted(ended, key=lambda e: e[1]) == [(report.ran[0], 1, 2), (report.ran[1], 2, 2)]
+    assert complete.stat().st_mtime_ns == stamp  # not rerun
+    for path, ref in zip(paths, reference):
+        assert_same_results(ref, read_result(path))
+    assert not ray.is_initialized()
+    again = run_sweep([*cfgs, complete_cfg], tmp_path, jobs=2, backend="ray")
+    assert again.ran == [] and len(again.skipped) == 3
+
+
+def test_ray_sweep_reports_failures_like_the_local_backend(ray_session, tmp_path):
+    broken = tiny(cost="tip", cost_scale=2.0)  # valid settings the loop refuses at its start
+    on_ray = run_sweep([broken], tmp_path / "ray", backend="ray")
+    local = run_sweep([broken], tmp_path / "local")
+    name = f"{experiment_name(broken)}.h5"
+    assert on_ray.ran == [] and list(on_ray.failed) == [str(tmp_path / "ray" / name)]
+    assert list(on_ray.failed.values()) == list(local.failed.values())
+    assert next(iter(on_ray.failed.values())).startswith("ValueError: cost_scale:")
+    assert ray_session.is_initialized()  # a session the caller started is left to the caller
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs Linux CPU affinity and two CPUs")
+def test_concurrent_ray_tasks_are_pinned_to_distinct_cpus(ray_session, tmp_path):
+    def affinity_once_both_run(folder):
+        (folder / str(os.getpid())).touch()
+        deadline = time.time() + 60
+        while len(list(folder.iterdir())) < 2 and time.time() < deadline:
+            time.sleep(0.05)
+        return os.sched_getaffinity(0)
+
+    task = ray_task(ray_session)
+    pinned = ray_session.get([task.remote(affinity_once_both_run, tmp_path) for _ in range(2)])
+    assert all(len(cpus) == 1 for cpus in pinned) and pinned[0] != pinned[1]
+
+
+def test_ray_backend_without_ray_says_how_to_install_it(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray now raises ImportError
+    with pytest.raises(ImportError, match=r"pip install 'pipps\[ray\]'"):
+        run_sweep([tiny()], tmp_path, backend="ray")
+    with pytest.raises(ValueError, match="address"):
+        run_sweep([tiny()], tmp_path, address="auto")
+
+
 # -- CLI ---------------------------------------------------------------------------------------------
 
 
@@ -328,6 +408,7 @@ def test_sweep_workers_are_pinned_to_distinct_cpus():
         (["run", "--particles", "0"], "--particles"),
         (["run", "--preset", "fast"], "--preset"),
         (["sweep", "--table", "4.1", "--jobs", "0"], "--jobs"),
+        (["sweep", "--table", "4.1", "--backend", "dask"], "--backend"),
     ],
 )
 def test_cli_rejects_bad_values_naming_the_option(argv, option, capsys):
@@ -348,6 +429,8 @@ def test_cli_rejects_bad_settings_and_tables(capsys):
     assert "unknown table" in capsys.readouterr().err
     assert main(["run", "--set", "momentum=2"]) == 2
     assert "momentum" in capsys.readouterr().err
+    assert main(["sweep", "--table", "4.1", "--address", "auto"]) == 2
+    assert "--address needs --backend ray" in capsys.readouterr().err
 
 
 def test_cli_run_writes_the_result_and_shows_progress(tmp_path, capsys):

@@ -13,6 +13,15 @@ job, each worker pins itself to one CPU of the sweep's own CPU set (round robin;
 ``sched_setaffinity``), and XLA sizes its CPU thread pool from that affinity, so jobs do not
 fight over cores. (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false`` does not do this on
 jaxlib 0.10: a process with it still ran two threads, measured in docs/performance.md.)
+
+``backend="ray"`` runs the same plan on a Ray cluster (``address``; without one, ``ray.init()``
+finds a running local cluster or starts a local instance, shut down again at the end): each
+experiment is one Ray task with ``num_cpus=1`` that calls the same :func:`_run_one`, so the task
+itself writes the result file, atomically, after every trial. ``out_dir`` must therefore be the
+same path on every node (a shared filesystem). ``jobs`` caps the tasks in flight. Ray reserves a
+CPU per task but does not say which, so a task pins itself to a CPU that no other task of a sweep
+on its node holds (one lock file per CPU), and runs in a
+fresh worker process (``max_calls=1``) so the pinning precedes JAX.
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ import concurrent.futures as cf
 import dataclasses
 import multiprocessing as mp
 import os
+import tempfile
 import time
 import traceback
 from pathlib import Path
@@ -92,19 +102,31 @@ def plan(configs: Iterable[ExperimentConfig], out_dir: str | os.PathLike) -> tup
     return todo, done
 
 
+BACKENDS = ("local", "ray")
+
+
 def run_sweep(
     configs: Iterable[ExperimentConfig],
     out_dir: str | os.PathLike,
     *,
     jobs: int = 1,
     on_done: Callable[[str, str, int, int], None] | None = None,
+    backend: str = "local",
+    address: str | None = None,
 ) -> SweepReport:
     """Run every configuration whose result is not already complete; see the module docstring.
 
-    ``on_done(path, error, finished, total)`` is called as each experiment ends.
+    ``on_done(path, error, finished, total)`` is called as each experiment ends. ``backend``:
+    ``"local"`` (``jobs`` worker processes) or ``"ray"`` (at most ``jobs`` Ray tasks in flight on
+    the cluster at ``address``; a Ray session this process already has is used as it is).
     """
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if address is not None and backend != "ray":
+        raise ValueError("address is only used by the ray backend")
+    ray = import_ray() if backend == "ray" else None
     start = time.perf_counter()
     todo, done = plan(list(configs), out_dir)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
@@ -116,7 +138,10 @@ def run_sweep(
         if on_done:
             on_done(path, err, len(ran) + len(failed), total)
 
-    if jobs == 1:
+    if ray is not None:
+        if todo:
+            _run_on_ray(ray, todo, jobs, address, record)
+    elif jobs == 1:
         for cfg, path in todo:
             record(*_run_one(cfg, str(path)))
     elif todo:
@@ -125,3 +150,92 @@ def run_sweep(
             for fut in cf.as_completed(futures):
                 record(*fut.result())
     return SweepReport(ran, [str(p) for p in done], failed, time.perf_counter() - start)
+
+
+# -- the Ray backend -------------------------------------------------------------------------------
+
+
+def import_ray():
+    """The ``ray`` module, or an ImportError that says how to install it."""
+    try:
+        import ray
+    except ImportError as err:
+        raise ImportError("the ray backend needs Ray: pip install 'pipps[ray]'") from err
+    return ray
+
+
+_cpu_lock = None  # the open lock file that reserves this process's CPU; released when it exits
+
+
+def _pin_to_free_cpu() -> int | None:
+    """Pin this process to a CPU of its CPU set that no other process pinned this way holds.
+
+    Each CPU has a lock file in the node's temporary folder; the first one this process can lock
+    (``flock``, released by the kernel when the process exits) is its CPU. With more such
+    processes than CPUs it shares one (pid round robin), still one XLA thread. Returns the CPU,
+    or None without Linux CPU affinity.
+    """
+    global _cpu_lock
+    if not hasattr(os, "sched_setaffinity"):
+        return None
+    import fcntl
+
+    cpus = sorted(os.sched_getaffinity(0))
+    chosen = cpus[os.getpid() % len(cpus)]
+    try:
+        folder = Path(tempfile.gettempdir()) / "pipps-cpu-locks"
+        folder.mkdir(exist_ok=True)
+        for cpu in cpus:
+            fd = os.open(folder / f"cpu{cpu}", os.O_CREAT | os.O_RDWR, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                continue
+            _cpu_lock, chosen = fd, cpu
+            break
+    except OSError:  # no usable lock folder: keep the round-robin choice
+        pass
+    os.sched_setaffinity(0, {chosen})
+    return chosen
+
+
+def _pinned(fn, *args):
+    """Ray task body: pin to a free CPU before ``fn`` (and with it JAX) runs, then call it."""
+    _pin_to_free_cpu()
+    return fn(*args)
+
+
+def ray_task(ray):
+    """The remote function every sweep task runs: one CPU, a fresh worker process per task.
+
+    ``JAX_PLATFORMS`` travels with the task (``runtime_env``) when, and only when, it is set here.
+    """
+    options = dict(num_cpus=1, max_calls=1)
+    if "JAX_PLATFORMS" in os.environ:
+        options["runtime_env"] = {"env_vars": {"JAX_PLATFORMS": os.environ["JAX_PLATFORMS"]}}
+    return ray.remote(**options)(_pinned)
+
+
+def _run_on_ray(ray, todo, jobs: int, address: str | None, record) -> None:
+    """Submit ``todo`` as Ray tasks, at most ``jobs`` in flight, and ``record`` each as it ends."""
+    started = not ray.is_initialized()
+    if started:
+        ray.init(address=address)
+    try:
+        task = ray_task(ray)
+        queue = [(cfg, str(path), str(path.resolve())) for cfg, path in todo]
+        in_flight = {}
+        while queue or in_flight:
+            while queue and len(in_flight) < jobs:
+                cfg, name, absolute = queue.pop(0)
+                in_flight[task.remote(_run_one, cfg, absolute)] = name
+            (ref,), _ = ray.wait(list(in_flight), num_returns=1)
+            name = in_flight.pop(ref)
+            try:
+                record(name, ray.get(ref)[1])
+            except ray.exceptions.RayError as err:  # the worker died; its file says running or failed
+                record(name, f"{type(err).__name__}: {err}")
+    finally:
+        if started:
+            ray.shutdown()  # stops a local instance this call started; only disconnects from a cluster
