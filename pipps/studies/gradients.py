@@ -356,8 +356,8 @@ def record_landscape(r: LandscapeResult, out: str | Path) -> Path:
     rec = rr.RecordingStream("pipps-landscape")
     rr.save(out, default_blueprint=bp, recording=rec)
     rec.log("objective/fixed_seed", rr.SeriesLines(names=["J, particles, fixed seed"], colors=[(200, 200, 200)]), static=True)
-    rec.log("objective/mm", rr.SeriesLines(names=["J, moment matching"], colors=[(0, 0, 0)]), static=True)
-    rec.log("directional/mm", rr.SeriesLines(names=["∇J_MM·d (exact)"], colors=[(0, 0, 0)]), static=True)
+    rec.log("objective/mm", rr.SeriesLines(names=["J, moment matching"], colors=[(230, 200, 0)]), static=True)
+    rec.log("directional/mm", rr.SeriesLines(names=["∇J_MM·d (exact)"], colors=[(230, 200, 0)]), static=True)
     for n in r.samples:
         c = _COLORS.get(n, (100, 100, 100))
         light = tuple(int(0.5 * v + 127) for v in c)
