@@ -130,6 +130,7 @@ def test_bench_mse_is_measured_against_the_reference(snap):
     assert e.seconds > 0 and r.mm_seconds > 0
 
 
+@pytest.mark.slow  # end to end through the CLI; the library path runs by default (test above)
 def test_cli_bench_quick(tmp_path, capsys):
     out = tmp_path / "b.h5"
     assert main(["bench", str(RESULT), "--trial", str(TRIAL), "--quick", "--out", str(out)]) == 0
