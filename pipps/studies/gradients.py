@@ -251,6 +251,7 @@ def _common_attrs(f, r, kind: str) -> None:
 
     f.attrs.update(study=kind, source=r.source, trial=r.trial, direction_kind=r.direction_kind, repeats=r.repeats,
                    seed=r.seed, estimator_choices=r.choices, seconds=r.seconds, schema_version=1)
+    f.attrs["estimators"] = ",".join(r.samples)  # their order (HDF5 lists groups by name)
     for k, v in versions().items():
         f.attrs[f"version_{k}"] = v
     f.create_dataset("direction", data=r.direction)
@@ -286,6 +287,33 @@ def write_study(path: str | Path, r: LandscapeResult | VarianceResult) -> Path:
         os.fsync(fh.fileno())
     os.replace(tmp, path)
     return path
+
+
+def _read_samples(g) -> Samples:
+    return Samples(g["directional"][()], float(g.attrs["trace_variance"]), g["k_lr"][()], int(g.attrs["nonfinite_repeats"]))
+
+
+def read_study(path: str | Path) -> LandscapeResult | VarianceResult:
+    """Load a study written by :func:`write_study` (to re-print its table or re-record it)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        a = f.attrs
+        common = dict(source=str(a["source"]), trial=int(a["trial"]), direction=f["direction"][()],
+                      direction_kind=str(a["direction_kind"]), repeats=int(a["repeats"]), seed=int(a["seed"]),
+                      choices=str(a["estimator_choices"]), seconds=float(a["seconds"]), deltas=f["deltas"][()])
+        ests = f["estimators"]
+        order = str(a["estimators"]).split(",") if "estimators" in a else sorted(ests)
+        ests = {n: ests[n] for n in order}
+        if a["study"] == "landscape":
+            samples = {n: [_read_samples(ests[n][k]) for k in sorted(ests[n])] for n in ests}
+            return LandscapeResult(particles=int(a["particles"]), objective_fixed_seed=f["objective_fixed_seed"][()],
+                                   objective_mm=f["objective_mm"][()], directional_mm=f["directional_mm"][()],
+                                   samples=samples, **common)
+        particles = f["particles"][()]
+        samples = {n: [[_read_samples(ests[n][dk][f"P_{int(P)}"]) for P in particles] for dk in sorted(ests[n])]
+                   for n in ests}
+        return VarianceResult(particles=particles, samples=samples, **common)
 
 
 def landscape_table(r: LandscapeResult) -> str:
@@ -385,15 +413,16 @@ def record_landscape(r: LandscapeResult, out: str | Path) -> Path:
 
 
 def record_variance(r: VarianceResult, out: str | Path) -> Path:
-    """Recording: log₁₀ of the covariance trace against P (timeline ``particles``), one panel per Δ,
-    and TP's mean per-step k_LR at the largest P (timeline ``step``)."""
+    """Recording: log₁₀ of the covariance trace against P, one panel per Δ, and TP's mean per-step
+    k_LR at the largest P. All on one sequence timeline ``index`` (P in the variance panels, the
+    time step in the k_LR panel): a time-series view follows the viewer's one active timeline."""
     import rerun as rr
     import rerun.blueprint as rrb
 
     views = [rrb.TimeSeriesView(origin=f"/delta_{i}", name=f"log10 tr Cov[ĝ] against P, Δ = {d:.3g}")
              for i, d in enumerate(r.deltas)]
     if "tp" in r.samples:
-        views.append(rrb.TimeSeriesView(origin="/k_lr", name=f"TP k_LR per step, P = {int(r.particles[-1])}"))
+        views.append(rrb.TimeSeriesView(origin="/k_lr", name=f"TP k_LR per time step, P = {int(r.particles[-1])}"))
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("pipps-variance")
@@ -405,16 +434,19 @@ def record_variance(r: VarianceResult, out: str | Path) -> Path:
             for pi, P in enumerate(r.particles):
                 v = grid[di][pi].trace_variance
                 if np.isfinite(v) and v > 0:
-                    rec.set_time("particles", sequence=int(P))
+                    rec.set_time("index", sequence=int(P))
                     rec.log(f"delta_{di}/{n}", rr.Scalars([np.log10(v)]))
     if "tp" in r.samples:
         for di, delta in enumerate(r.deltas):
-            rec.log(f"k_lr/delta_{di}", rr.SeriesLines(names=[f"Δ = {delta:.3g}"]), static=True)
+            rec.log(f"k_lr/delta_{di}", rr.SeriesLines(names=[f"Δ = {delta:.3g}"], colors=[_PAIR[di % 2]]), static=True)
             k = r.samples["tp"][di][-1].k_lr
             for t, v in enumerate(k):
                 if np.isfinite(v):
-                    rec.set_time("step", sequence=t + 1)
+                    rec.set_time("index", sequence=t + 1)
                     rec.log(f"k_lr/delta_{di}", rr.Scalars([v]))
     rec.flush()
     rec.disconnect()
     return out
+
+
+_PAIR = [(31, 119, 180), (214, 39, 40)]
