@@ -116,7 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
         p = studies.add_parser(name, help=text)
         p.add_argument("result", help="a result file of a cart-pole run (pipps run/sweep)")
         p.add_argument("--trial", type=_positive_int, default=None,
-                       help="learned trial whose optimisation start is the snapshot (default: the last full-GP one)")
+                       help="learned trial whose optimisation start is the snapshot (default: the last one the file can rebuild)")
         p.add_argument("--estimators", default=None, help="comma-separated: rp, lr_plain, lr (BIW), tp, gtp, glr, del")
         p.add_argument("--repeats", type=_int_at_least(2), default=None, help="independent estimates per point")
         p.add_argument("--direction", default="pilco", choices=["pilco", "random"],
@@ -136,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bn = sub.add_parser("bench", help="run time against gradient error per estimator and P, and the Pareto table")
     bn.add_argument("result", help="a result file of a cart-pole run (the snapshot, as for pipps study)")
-    bn.add_argument("--trial", type=_positive_int, default=None, help="learned trial (default: the last full-GP one)")
+    bn.add_argument("--trial", type=_positive_int, default=None, help="learned trial (default: the last one the file can rebuild)")
     bn.add_argument("--estimators", default=None, help="comma-separated (default rp,lr,tp,gtp)")
     bn.add_argument("--particles", default=None, help="comma-separated P values (default 30,100,300,1000)")
     bn.add_argument("--deltas", default=None, help="comma-separated Δ values (default 0,1.5: smooth, chaotic)")
@@ -336,9 +336,10 @@ def _default_trial(path) -> int:
     from pipps.experiments.results import read_result
 
     r = read_result(path)
-    ok = [t.index for t in r.trials if t.kind == "learned" and not (t.gp_info or {}).get("sparse", False)]
+    ok = [t.index for t in r.trials
+          if t.kind == "learned" and (not (t.gp_info or {}).get("sparse", False) or "inducing" in t.gp_info)]
     if not ok:
-        raise ValueError(f"{path} has no learned full-GP trial")
+        raise ValueError(f"{path} has no learned trial whose model can be rebuilt")
     return ok[-1]
 
 

@@ -140,3 +140,25 @@ def test_cli_bench_quick(tmp_path, capsys):
         assert f.attrs["study"] == "bench" and f["reference"].shape[0] == 2
         assert list(f["entries/delta_000/particles"][()]) == [20, 20]
     assert (tmp_path / "b.rrd").stat().st_size > 0
+
+
+def test_snapshot_of_a_fitc_trial_reproduces_its_stored_prediction(tmp_path):
+    """A run whose last trial trains FITC (threshold lowered) stores the inducing inputs; the snapshot
+    rebuilds that FITC model exactly (the stored particle prediction is reproduced)."""
+    from pipps.experiments import resolve_config, run_experiment
+    from pipps.experiments.results import read_result, write_result
+
+    cfg = resolve_config("quick", "cartpole_swingup", num_learned=2, num_particles=8, policy_evals=6, eval_rollouts=3,
+                         gp_max_iters=10, progress_chunk=3, store_particles=4, fitc_threshold=50, num_inducing=20,
+                         fitc_first_iters=5)
+    path = tmp_path / "fitc.h5"
+    run_experiment(cfg, on_trial=lambda r: write_result(path, r))
+    stored = read_result(path).trials[-1]
+    assert stored.gp_info["sparse"] and stored.gp_info["inducing"].shape == (20, 5)
+    snap = load_snapshot(path, stored.index)
+    assert snap.model.inputs.shape == (20, 5)
+    k_trials = jax.random.split(jax.random.PRNGKey(cfg.seed))[1]
+    k_pred = jax.random.split(jax.random.split(jax.random.fold_in(k_trials, stored.index), 4)[2], 3)[2]
+    rcfg, _ = particle_method(cfg)
+    pred = _particle_prediction(snap.task, rcfg, cfg.store_particles)(k_pred, snap.unravel(stored.policy), snap.model)
+    np.testing.assert_allclose(pred["particles"], stored.predicted["particles"], rtol=1e-9, atol=1e-9)

@@ -357,6 +357,8 @@ def run_experiment(
                 trial.gp_info = {"sparse": bool(info.sparse), "num_points": int(info.num_points),
                                  "objective": np.asarray(info.hyper.objective),
                                  "messages": "\n".join(info.messages)}
+                if info.sparse:  # FITC's inducing inputs: with the data and hyperparameters they rebuild the model
+                    trial.gp_info["inducing"] = np.asarray(post.inputs)
                 trial.opt_trace, trial.diagnostics, trial.predicted = trace, diagnostics, predicted
             timings["total"] = time.perf_counter() - t0
             x_in, y_out = training_pairs(task, traj)

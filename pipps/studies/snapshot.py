@@ -4,8 +4,9 @@ A result file stores, per trial, the true trajectories, the trained GP hyperpara
 policy the trial ran. :func:`load_snapshot` rebuilds, for a learned trial ``k``, exactly what
 that trial's policy optimisation saw at its start: the GP posterior from the data of trials
 ``0..k−1`` with trial ``k``'s hyperparameters (padded like the loop pads), and the policy it
-started from (the one trial ``k − 1`` ran). FITC trials cannot be rebuilt: their inducing inputs
-are not stored, and :func:`load_snapshot` says so.
+started from (the one trial ``k − 1`` ran). FITC trials are rebuilt from their stored inducing
+inputs; result files written before those were stored cannot rebuild them, and
+:func:`load_snapshot` says so.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from jax.flatten_util import ravel_pytree
 
 from pipps.experiments.config import ExperimentConfig
 from pipps.gp import GPHyper, GPPosterior, full_posterior, make_data, pad_to_capacity
+from pipps.gp.fitc import fitc_posterior
 from pipps.tasks.base import Task
 
 
@@ -66,9 +68,10 @@ def load_snapshot(path: str | os.PathLike, trial: int) -> Snapshot:
     if trial not in learned:
         raise ValueError(f"trial {trial} is not a learned trial of {path} (learned trials: {learned})")
     t = result.trials[trial]
-    if t.gp_info is not None and bool(t.gp_info.get("sparse", False)):
-        raise ValueError(f"trial {trial} of {path} used a FITC model, whose inducing inputs are not stored; "
-                         f"pick a trial with at most fitc_threshold={cfg.fitc_threshold} points")
+    sparse = t.gp_info is not None and bool(t.gp_info.get("sparse", False))
+    if sparse and "inducing" not in t.gp_info:
+        raise ValueError(f"trial {trial} of {path} used a FITC model whose inducing inputs this (older) file does "
+                         f"not store; pick a trial with at most fitc_threshold={cfg.fitc_threshold} points")
     task = make_experiment_task(cfg)
     xs, ys = [], []
     for prev in result.trials[:trial]:
@@ -78,7 +81,10 @@ def load_snapshot(path: str | os.PathLike, trial: int) -> Snapshot:
         ys.append(b)
     data = pad_to_capacity(make_data(np.concatenate(xs), np.concatenate(ys)), chunk=cfg.gp_chunk)
     hyper = GPHyper(*(jnp.asarray(t.gp_hyper[n]) for n in ("log_lengthscale", "log_signal", "log_noise")))
-    model, _, ok = full_posterior(hyper, data, gp_config(cfg))
+    if sparse:
+        model, _, ok = fitc_posterior(hyper, data, jnp.asarray(t.gp_info["inducing"]), gp_config(cfg))
+    else:
+        model, _, ok = full_posterior(hyper, data, gp_config(cfg))
     if not bool(np.all(np.asarray(ok))):
         raise FloatingPointError(f"the posterior Cholesky of trial {trial} failed on rebuilding")
     _, unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task))
