@@ -96,6 +96,17 @@ def test_cli_landscape_quick_writes_the_documented_file(tmp_path, capsys):
     assert (tmp_path / "l.rrd").stat().st_size > 0
 
 
+@pytest.mark.slow  # the landscape's CLI test above runs by default; this is the same path for the variance study
+def test_cli_variance_quick_writes_the_documented_file(tmp_path, capsys):
+    out = tmp_path / "v.h5"
+    assert main(["study", "variance", str(RESULT), "--trial", str(TRIAL), "--quick", "--out", str(out)]) == 0
+    assert "TP/BIW-LR" not in capsys.readouterr().out  # quick mode has no BIW-LR column to compare with
+    with h5py.File(out, "r") as f:
+        assert f.attrs["study"] == "variance" and list(f["particles"][()]) == [10, 30]
+        assert f["estimators/tp/delta_001/P_30/directional"].shape == (3,)
+    assert (tmp_path / "v.rrd").stat().st_size > 0
+
+
 @pytest.mark.parametrize("argv, needle", [
     (["--deltas", "0:1.5"], "--deltas"),
     (["--trial", "12"], "FITC"),
