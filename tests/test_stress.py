@@ -293,9 +293,9 @@ def test_overflowing_pathwise_gradient_is_refused_and_reported(name):
 
 
 @pytest.mark.parametrize("T", [30, pytest.param(100, marks=pytest.mark.slow)])
-def test_float32_rollout_against_float64(T, record_property):
+def test_float32_rollout_against_float64(T):
     """Model, policy and noise cast to float32: the rollout stays float32 and finite. The two do NOT
-    agree beyond the objective: the RP-gradient difference is recorded, not asserted (measured,
+    agree beyond the objective: the RP-gradient difference is printed (-rP), not asserted (measured,
     T = 30 / 100: objective 7.5·10⁻⁴ / 1.1·10⁻³ relative, gradient 1.0 / 1.8 relative; the states
     differ by 1.2·10⁻³ after one step — the GP mean βᵀk cancels — and the chaos does the rest)."""
     cfg = config(T)
@@ -314,8 +314,7 @@ def test_float32_rollout_against_float64(T, record_property):
     assert g32.dtype == np.float32 and np.all(np.isfinite(g32)) and np.isfinite(float(J32))
     rel_J = abs(float(J32) - float(J64)) / abs(float(J64))
     rel_g = float(np.linalg.norm(g32 - g64) / np.linalg.norm(g64))
-    record_property("objective_rel_diff", rel_J)
-    record_property("rp_gradient_rel_diff", rel_g)
+    print(f"float32 vs float64, T = {T}: objective rel {rel_J:.3g}, RP gradient rel {rel_g:.3g}")  # shown by -rP
     assert rel_J < 1e-2, f"objective float32 {float(J32)!r} vs float64 {float(J64)!r}: rel {rel_J:.3g} (gradient: rel {rel_g:.3g})"
     if T == 30:  # one jitted update from the float32-cast policy and model (estimate draws float64 noise)
         contained(updates("tp", cfg, f32(pol), f32(model), replicates=1))
