@@ -30,6 +30,11 @@ def saturate(w: jax.Array) -> jax.Array:
     return (9.0 * jnp.sin(w) + jnp.sin(3.0 * w)) / 8.0
 
 
+def _scaled(u_max: tuple[float, ...], s: jax.Array) -> jax.Array:
+    """u_max ⊙ s in the dtype of s: the static limits must not promote a float32 policy to float64."""
+    return jnp.asarray(u_max, dtype=s.dtype) * s
+
+
 def _static(default=dataclasses.MISSING):
     return dataclasses.field(metadata=dict(static=True), default=default)
 
@@ -75,7 +80,7 @@ class RBFPolicy:
         return phi @ self.weights
 
     def __call__(self, v: jax.Array) -> jax.Array:
-        return jnp.asarray(self.u_max) * saturate(self.unsquashed(v))
+        return _scaled(self.u_max, saturate(self.unsquashed(v)))
 
     def as_rbf(self) -> RBFForm:
         # exp(-dᵀΛ⁻¹d) = exp(-½ dᵀ(Λ/2)⁻¹d): PILCO's ℓ² is Λ/2 and β = w.
@@ -106,7 +111,7 @@ class PilcoRBFPolicy:
         sq = jnp.einsum("ijd,fd->fij", diff**2, inv_ell_sq)
         K = PILCO_RBF_SIGNAL_STD**2 * jnp.exp(-0.5 * sq)
         n = self.centres.shape[0]
-        Ky = K + PILCO_RBF_NOISE_STD**2 * jnp.eye(n)
+        Ky = K + PILCO_RBF_NOISE_STD**2 * jnp.eye(n, dtype=K.dtype)
         chol = jnp.linalg.cholesky(Ky)
         sol = jax.vmap(lambda L, y: jax.scipy.linalg.cho_solve((L, True), y))(chol, self.pseudo_targets.T)
         return sol.T
@@ -118,7 +123,7 @@ class PilcoRBFPolicy:
         return jnp.sum(k * self.beta(), axis=0)
 
     def __call__(self, v: jax.Array) -> jax.Array:
-        return jnp.asarray(self.u_max) * saturate(self.unsquashed(v))
+        return _scaled(self.u_max, saturate(self.unsquashed(v)))
 
     def as_rbf(self) -> RBFForm:
         return RBFForm(self.centres, PILCO_RBF_SIGNAL_STD**2 * self.beta(), jnp.exp(2.0 * self.log_lengthscale))
@@ -145,7 +150,7 @@ class LinearPolicy:
     def __call__(self, v: jax.Array) -> jax.Array:
         if not self.saturated:
             return self.unsquashed(v)
-        return jnp.asarray(self.u_max) * saturate(self.unsquashed(v))
+        return _scaled(self.u_max, saturate(self.unsquashed(v)))
 
 
 Policy = RBFPolicy | PilcoRBFPolicy | LinearPolicy

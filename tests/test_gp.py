@@ -340,6 +340,22 @@ def test_adaptive_jitter_escalates_and_is_reported():
     assert np.all(np.isfinite(info.hyper.objective)) and np.all(info.hyper.objective < info.hyper.objective_init)
 
 
+def test_repeated_inputs_are_counted_and_reported(toy):
+    """No guard acts on repeated inputs (σ_n² keeps K + σ_n²I invertible), but repeated pairs pull σ_n
+    down silently; fit counts real rows only (a masked copy of a real row is not a repeat)."""
+    x, y = np.asarray(toy.inputs), np.asarray(toy.targets)
+    x2 = np.concatenate([x, x[:5], x[5:8], x[9:10]])
+    y2 = np.concatenate([y, y[:5], y[5:8] + 0.1, y[9:10]])
+    m = np.concatenate([np.ones(48, bool), [False]])  # the copy of row 9 is padding
+    data = pad_to_capacity(make_data(x2, y2, m), CAP)
+    with pytest.warns(GPNumericsWarning, match=r"8 training inputs repeat an earlier input exactly \(5 with equal targets\)"):
+        post, _, info = fit(None, data, config=SMALL)
+    assert info.duplicate_inputs == (8, 5)
+    assert np.all(np.isfinite(np.asarray(post.beta))) and np.all(np.isfinite(np.asarray(post.inv)))
+    _, _, clean = fit(None, pad_to_capacity(toy, CAP), config=SMALL)
+    assert clean.duplicate_inputs == (0, 0) and not any("repeat" in s for s in clean.messages)
+
+
 # ----------------------------------------------------------------------------- errors
 
 

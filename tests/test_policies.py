@@ -94,6 +94,26 @@ def test_u_max_is_static_and_vmap_matches_loop():
     np.testing.assert_allclose(np.asarray(batched), looped, rtol=1e-13)
 
 
+@pytest.mark.parametrize("which", ["thesis", "pilco", "linear"])
+def test_a_float32_policy_gives_float32_controls(which):
+    """pipps/__init__.py: code that wants float32 casts explicitly. The static ``u_max`` (Python
+    floats) and PILCO's σ_π² I must not promote a cast policy back to float64 — a float32 particle
+    rollout's scan carry would change dtype and fail (found by the stress suite)."""
+    key = jax.random.PRNGKey(9)
+    if which == "thesis":
+        pol = init_rbf_policy(key, 6, np.zeros(4), 0.5 * np.eye(4), [10.0])
+    elif which == "pilco":
+        pol = init_pilco_rbf_policy(key, 6, np.zeros(4), 0.5 * np.eye(4), [10.0])
+    else:
+        pol = init_linear_policy(key, 4, [10.0], scale=0.5)
+    v = jnp.array([0.1, -0.3, 0.2, 0.4])
+    pol32 = jax.tree.map(lambda a: a.astype(jnp.float32), pol)
+    u32 = pol32(v.astype(jnp.float32))
+    assert u32.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(u32), np.asarray(pol(v)), rtol=1e-4)
+    assert pol(v).dtype == jnp.float64  # the float64 path is unchanged
+
+
 @pytest.mark.parametrize("which", ["thesis", "pilco"])
 def test_parameter_gradient_matches_central_differences(which):
     key = jax.random.PRNGKey(6)

@@ -25,7 +25,8 @@ from pipps.gp.types import FitcFitInfo, FitState, GPConfig, GPData, GPHyper, GPP
 
 
 class GPNumericsWarning(RuntimeWarning):
-    """A numerical guard (noise floor, std floor, jitter) changed what the model computes."""
+    """A numerical guard (noise floor, std floor, jitter) changed what the model computes, or the
+    training inputs repeat exactly (a singular Gram matrix, see :func:`duplicate_inputs`)."""
 
 
 class FitInfo(NamedTuple):
@@ -37,6 +38,7 @@ class FitInfo(NamedTuple):
     sparse: bool
     num_points: int  # real training points
     messages: tuple[str, ...]  # the warnings emitted
+    duplicate_inputs: tuple[int, int] = (0, 0)  # real rows repeating an earlier input (of them, with equal targets)
 
 
 @jax.jit
@@ -79,6 +81,19 @@ def _check_prev(prev: Optional[FitState], data: GPData, config: GPConfig) -> Non
             raise ValueError(f"prev.inducing has shape {xu.shape} but config/data need {want}")
         if not np.isfinite(xu).all():
             raise ValueError("prev.inducing contains NaN/Inf")
+
+
+def duplicate_inputs(data: GPData) -> tuple[int, int]:
+    """(real rows whose input repeats an earlier real row's exactly, how many of those repeat its targets too).
+
+    Repeated inputs make K singular, so only σ_n² keeps K + σ_n²I invertible; repeated
+    (input, target) pairs are evidence of noise-free observations and pull the learned σ_n down
+    (every cart-pole pair twice: σ_n 165–540× smaller, docs/stress.md). Host-side.
+    """
+    m = np.asarray(data.mask)
+    x, y = np.asarray(data.inputs)[m], np.asarray(data.targets)[m]
+    n = x.shape[0]
+    return n - np.unique(x, axis=0).shape[0], n - np.unique(np.concatenate([x, y], 1), axis=0).shape[0]
 
 
 def _messages(hinfo, finfo, jitter, ok, config: GPConfig, sparse: bool) -> list[str]:
@@ -158,6 +173,12 @@ def fit(
         raise FloatingPointError(f"posterior Cholesky failed for outputs {np.nonzero(~ok)[0].tolist()} "
                                  f"even with jitter {jitter.tolist()}")
     msgs = _messages(hinfo, finfo, jitter, ok, config, sparse)
+    dup = duplicate_inputs(data)
+    if dup[0]:
+        pulled = (f"; repeated pairs read as noise-free and pull σ_n down "
+                  f"(σ_n = {np.exp(np.asarray(post.hyper.log_noise)).tolist()})") if dup[1] else ""
+        msgs.append(f"{dup[0]} training inputs repeat an earlier input exactly ({dup[1]} with equal targets): "
+                    f"K is singular, only σ_n² keeps K + σ_n²I invertible{pulled}")
     for m in msgs:
         warnings.warn(m, GPNumericsWarning, stacklevel=2)
-    return post, state, FitInfo(hinfo, finfo, jitter, sparse, n, tuple(msgs))
+    return post, state, FitInfo(hinfo, finfo, jitter, sparse, n, tuple(msgs), dup)
