@@ -113,8 +113,6 @@ def bench(
     progress: Callable[[str], None] | None = None,
 ) -> BenchResult:
     """Time and error of every (estimator, P) at every Δ (module doc)."""
-    from pipps.pilco.propagate import objective as mm_objective
-
     names = _check_estimators(estimators)
     _check_estimators([reference])
     particles = sorted(int(p) for p in particles)
@@ -140,8 +138,7 @@ def bench(
         refs.append(g.mean(0))
         ref_err.append(float(np.sum(np.var(g, axis=0, ddof=1)) / len(g)))
         progress(f"reference {LABELS.get(reference, reference)} P={P_ref} Δ={deltas[di]:.3g}")
-    task, model = snap.task, snap.model
-    mm = snap.program("mm", lambda: jax.jit(jax.value_and_grad(lambda th: mm_objective(task, snap.unravel(th), model))))
+    mm = snap.mm_value_and_grad()
     mm_seconds = _time(mm, points[0], repeats=time_repeats)
     mm_dist = np.array([float(np.sum((np.asarray(mm(p)[1]) - r) ** 2)) for p, r in zip(points, refs)])
     entries: list[list[BenchEntry]] = [[] for _ in deltas]

@@ -167,8 +167,6 @@ def landscape(
     progress: Callable[[str], None] | None = None,
 ) -> LandscapeResult:
     """The objective and each estimator's directional derivative along ``θ + Δ·d`` (module doc)."""
-    from pipps.pilco.propagate import objective as mm_objective
-
     names = _check_estimators(estimators)
     _check_positive("particles", particles, 2)
     _check_positive("repeats", repeats, 2)
@@ -183,7 +181,7 @@ def landscape(
     rcfg = RolloutConfig(num_particles=particles, horizon=snap.config.horizon)
     noise = sample_noise(jax.random.PRNGKey(seed), task, rcfg)
     fixed = jax.jit(lambda th: reparameterized_objective(task, snap.unravel(th), model, noise, rcfg))
-    mm = snap.program("mm", lambda: jax.jit(jax.value_and_grad(lambda th: mm_objective(task, snap.unravel(th), model))))
+    mm = snap.mm_value_and_grad()
     points = [jnp.asarray(theta + delta * d) for delta in deltas]
     obj_fixed = np.array([float(fixed(p)) for p in points])
     mm_vals = [mm(p) for p in points]

@@ -51,6 +51,13 @@ class Snapshot:
     def unravel(self, flat: jax.Array):
         return ravel_pytree(self.policy)[1](flat)
 
+    def mm_value_and_grad(self):
+        """The jitted ``θ (flat) → (J_MM, ∇J_MM)`` of PILCO's moment matching on this model, compiled once."""
+        from pipps.pilco.propagate import objective
+
+        return self.program("mm", lambda: jax.jit(jax.value_and_grad(
+            lambda th: objective(self.task, self.unravel(th), self.model))))
+
 
 def load_snapshot(path: str | os.PathLike, trial: int) -> Snapshot:
     """The policy and model at the start of learned trial ``trial``'s optimisation (module doc).
@@ -95,9 +102,7 @@ def load_snapshot(path: str | os.PathLike, trial: int) -> Snapshot:
 def pilco_direction(snap: Snapshot) -> jax.Array:
     """The unit descent direction of PILCO's moment-matching objective at the snapshot, ``−∇J/‖∇J‖``
     (flat, like :attr:`Snapshot.theta`): the thesis' choice of direction for the landscape."""
-    from pipps.pilco.propagate import objective
-
-    g = jax.grad(lambda th: objective(snap.task, snap.unravel(th), snap.model))(snap.theta)
+    _, g = snap.mm_value_and_grad()(snap.theta)
     norm = jnp.linalg.norm(g)
     if not bool(jnp.isfinite(norm)) or float(norm) == 0.0:
         raise FloatingPointError(f"the moment-matching gradient at the snapshot is {float(norm)}; pick another direction")
