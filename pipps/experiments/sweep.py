@@ -9,9 +9,9 @@ deterministic function of its configuration, a killed-and-resumed sweep gives th
 as an uninterrupted one.
 
 Workers are separate processes (``spawn``: JAX does not survive ``fork``). With more than one
-job, each worker pins itself to one CPU of the sweep's own CPU set (round robin; Linux
-``sched_setaffinity``), and XLA sizes its CPU thread pool from that affinity, so jobs do not
-fight over cores. (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false`` does not do this on
+job, each worker pins itself to one CPU of its CPU set that no other worker holds
+(:func:`_pin_to_free_cpu`: a lock file per CPU, Linux ``sched_setaffinity``), and XLA sizes its
+CPU thread pool from that affinity, so jobs do not fight over cores. (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false`` does not do this on
 jaxlib 0.10: a process with it still ran two threads, measured in docs/performance.md.)
 
 ``backend="ray"`` runs the same plan on a Ray cluster (``address``; without one, ``ray.init()``
@@ -19,9 +19,8 @@ finds a running local cluster or starts a local instance, shut down again at the
 experiment is one Ray task with ``num_cpus=1`` that calls the same :func:`_run_one`, so the task
 itself writes the result file, atomically, after every trial. ``out_dir`` must therefore be the
 same path on every node (a shared filesystem). ``jobs`` caps the tasks in flight. Ray reserves a
-CPU per task but does not say which, so a task pins itself to a CPU that no other task of a sweep
-on its node holds (one lock file per CPU), and runs in a
-fresh worker process (``max_calls=1``) so the pinning precedes JAX.
+CPU per task but does not say which, so a task pins itself the same way, in a fresh worker
+process (``max_calls=1``) so the pinning precedes JAX.
 """
 
 from __future__ import annotations
@@ -39,21 +38,9 @@ from typing import Callable, Iterable
 from pipps.experiments.config import ExperimentConfig
 
 
-def _pin_worker(counter, cpus: tuple[int, ...]) -> None:
-    """Pool initializer: pin this worker to the next CPU of ``cpus`` before JAX starts."""
-    with counter.get_lock():
-        slot = counter.value
-        counter.value += 1
-    if cpus and hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {cpus[slot % len(cpus)]})
-
-
 def worker_pool(jobs: int) -> cf.ProcessPoolExecutor:
-    """``jobs`` spawn workers, each pinned to one CPU of this process's CPU set (see module doc)."""
-    ctx = mp.get_context("spawn")
-    cpus = tuple(sorted(os.sched_getaffinity(0))) if hasattr(os, "sched_getaffinity") else ()
-    return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_pin_worker,
-                                  initargs=(ctx.Value("i", 0), cpus))
+    """``jobs`` spawn workers, each pinned to a CPU no other pinned pipps process holds (module doc)."""
+    return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=_pin_to_free_cpu)
 
 
 def experiment_name(cfg: ExperimentConfig) -> str:
