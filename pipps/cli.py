@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_experiment_options(run, single=True)
     run.add_argument("--out", default=None, help="result file (default: runs/<experiment name>.h5)")
     run.add_argument("--quiet", action="store_true", help="no progress display")
+    run.add_argument("--resume", action="store_true",
+                     help="continue the unfinished result at --out (same configuration) from its last finished "
+                          "trial instead of starting over")
 
     sw = sub.add_parser("sweep", help="run a table's cells over seeds in parallel workers (resumable)")
     sw.add_argument("--table", required=True, help="4.1, 4.2, 4.3, 4.4, q001 (Q × 0.01 cell) or del")
@@ -187,7 +190,7 @@ def _cmd_run(args) -> int:
 
     from pipps.experiments.config import ConfigError, resolve_config
     from pipps.experiments.loop import run_experiment
-    from pipps.experiments.results import write_result
+    from pipps.experiments.results import ResultError, partial_result, write_result
     from pipps.experiments.sweep import experiment_name
 
     overrides = dict(method=args.method, k=args.k, seed=args.seed, cost=args.cost)
@@ -200,12 +203,27 @@ def _cmd_run(args) -> int:
         print(f"pipps run: error: {err}", file=sys.stderr)
         return 2
     out = Path(args.out) if args.out else Path("runs") / f"{experiment_name(cfg)}.h5"
+    resume = None
+    if args.resume:
+        try:
+            resume = partial_result(out, cfg)
+        except ResultError as err:
+            print(f"pipps run: error: --resume: {err}", file=sys.stderr)
+            return 2
+        if resume is None:
+            print(f"pipps run: error: --resume: {out} holds no intact unfinished result to continue", file=sys.stderr)
+            return 2
+        if resume.status == "complete":
+            print(f"pipps run: error: --resume: {out} is already complete", file=sys.stderr)
+            return 2
     if not args.quiet:
         print(f"{cfg.task} / {cfg.table_name} / k={cfg.k:g} / seed {cfg.seed} ({args.preset} preset): "
               f"{cfg.num_random} random + {cfg.num_learned} learned trials, P={cfg.num_particles}, "
               f"{cfg.policy_evals} policy evaluations per trial -> {out}", file=sys.stderr)
+    if resume is not None and not args.quiet:
+        print(f"resuming at trial {len(resume.trials)} of {cfg.num_trials}", file=sys.stderr)
     result = run_experiment(cfg, progress=None if args.quiet else _progress_printer(),
-                            on_trial=lambda r: write_result(out, r))
+                            on_trial=lambda r: write_result(out, r), resume=resume)
     returns = " ".join(f"{t.eval_return:.2f}" for t in result.trials)
     print(f"evaluated return per trial: {returns}")
     verdict = "success" if result.success else "failure"
@@ -239,12 +257,18 @@ def _cmd_sweep(args) -> int:
     if not configs:
         print("pipps sweep: error: no cell of the table matches --methods/--k", file=sys.stderr)
         return 2
-    todo, done = plan(configs, args.out)
-    print(f"{len(configs)} experiments: {len(done)} already complete, {len(todo)} to run with {args.jobs} job(s) "
+    try:
+        todo, done = plan(configs, args.out)
+    except ValueError as err:
+        print(f"pipps sweep: error: {err}", file=sys.stderr)
+        return 2
+    resumes = _resume_points(todo)
+    print(f"{len(configs)} experiments: {len(done)} already complete, {len(todo)} to run "
+          f"({sum(1 for n in resumes if n)} resumed from their last finished trial) with {args.jobs} job(s) "
           f"({args.backend}) -> {args.out}/", file=sys.stderr)
     if args.dry_run:
-        for _, path in todo:
-            print(f"  run  {path}")
+        for (_, path), n in zip(todo, resumes):
+            print(f"  resume at trial {n}  {path}" if n else f"  run  {path}")
         return 0
 
     def on_done(path, err, finished, total):
@@ -256,6 +280,19 @@ def _cmd_sweep(args) -> int:
     print(f"ran {len(report.ran)}, skipped {len(report.skipped)} complete, failed {len(report.failed)} "
           f"in {report.seconds / 60:.1f} min")
     return 1 if report.failed else 0
+
+
+def _resume_points(todo) -> list[int]:
+    """For each planned experiment, the trial a sweep resumes it at (0: from scratch)."""
+    from pipps.experiments.results import ResultError, verify_result
+
+    points = []
+    for _, path in todo:
+        try:
+            points.append(verify_result(path)[2])
+        except ResultError:
+            points.append(0)
+    return points
 
 
 def _result_paths(items):

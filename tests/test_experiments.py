@@ -302,15 +302,66 @@ def test_killed_and_resumed_sweep_equals_uninterrupted(local_pair, tiny_result, 
     write_result(first, tiny_result[0])
     stamp = first.stat().st_mtime_ns
     in_flight = part / f"{experiment_name(cfgs[1])}.h5"
-    write_result(in_flight, type(read_result(first))(cfgs[1], read_result(first).trials[:1], "running"))
+    whole = read_result(full / in_flight.name)
+    write_result(in_flight, type(whole)(cfgs[1], whole.trials[:1], "running", wall_seconds=1.0))
     resumed = run_sweep(cfgs, part, jobs=1)
     assert resumed.skipped == [str(first)] and resumed.ran == [str(in_flight)]
     assert first.stat().st_mtime_ns == stamp  # not rerun
     for cfg in cfgs:
         name = f"{experiment_name(cfg)}.h5"
         assert_same_results(read_result(full / name), read_result(part / name))
+    back = read_result(in_flight)
+    assert back.resumed_at == [1] and back.wall_seconds > 1.0  # picked up at trial 1, wall time summed
     again = run_sweep(cfgs, part, jobs=1)
     assert again.ran == [] and len(again.skipped) == 2
+
+
+def test_a_sweep_refuses_a_folder_holding_other_settings(local_pair, tmp_path):
+    """Same cell and seed, other settings: neither skipped as done nor overwritten nor resumed."""
+    cfgs, full = local_pair
+    other = tiny(seed=0, policy_evals=9)
+    with pytest.raises(ValueError, match=r"another configuration \(policy_evals: 6 stored, 9 asked\)"):
+        run_sweep([other], full, jobs=1)
+    partial = tmp_path / f"{experiment_name(cfgs[0])}.h5"
+    write_result(partial, type(read_result(full / partial.name))(cfgs[0], read_result(full / partial.name).trials[:1]))
+    with pytest.raises(ValueError, match="policy_evals"):
+        run_sweep([other], tmp_path, jobs=1)
+
+
+RESUME = dict(num_learned=3, fitc_threshold=40, num_inducing=20, fitc_iters=5, fitc_first_iters=5)
+
+
+@pytest.fixture(scope="module")
+def fitc_run(tmp_path_factory):
+    """A tiny run whose GP turns FITC at trial 2 (60 points > 40): warm starts of both kinds."""
+    path = tmp_path_factory.mktemp("fitc") / "whole.h5"
+    result = run_experiment(tiny(**RESUME), on_trial=lambda r: write_result(path, r))
+    assert [bool(t.gp_info["sparse"]) for t in result.trials[1:]] == [False, True, True]
+    return result, path
+
+
+@pytest.mark.parametrize("at", [2, 3])
+def test_a_resumed_experiment_equals_an_uninterrupted_one(fitc_run, tmp_path, at):
+    """Killed after trial ``at``−1, continued from the file: the same trials, bit for bit. At 2 the
+    warm start is a full GP's hyperparameters; at 3 also FITC's stored inducing inputs."""
+    whole, path = fitc_run
+    stored = read_result(path)
+    cut = tmp_path / "cut.h5"
+    write_result(cut, type(stored)(stored.config, stored.trials[:at], "failed", "KeyboardInterrupt: ", 5.0))
+    partial = read_result(cut, verify=False)
+    resumed = run_experiment(tiny(**RESUME), resume=partial)
+    assert resumed.status == "complete" and resumed.resumed_at == [at]
+    assert_same_results(whole, resumed)
+    for a, b in zip(whole.trials[at:], resumed.trials[at:]):
+        for name in ("log_lengthscale", "log_signal", "log_noise"):
+            np.testing.assert_array_equal(a.gp_hyper[name], b.gp_hyper[name])
+        np.testing.assert_array_equal(a.gp_info["inducing"], b.gp_info["inducing"])
+
+
+def test_resume_refuses_another_configuration(fitc_run):
+    whole, _ = fitc_run
+    with pytest.raises(ValueError, match="seed: 0 stored, 1 asked"):
+        run_experiment(tiny(**RESUME, seed=1), resume=type(whole)(whole.config, whole.trials[:2]))
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,

@@ -309,3 +309,9 @@ def from_dict(d: dict[str, Any]) -> ExperimentConfig:
             v = tuple(v)
         values[key] = v
     return ExperimentConfig(**values)
+
+
+def config_difference(stored: ExperimentConfig, asked: ExperimentConfig) -> str:
+    """The settings two configurations disagree on, ``"name: a stored, b asked; ..."``."""
+    a, b = stored.to_dict(), asked.to_dict()
+    return "; ".join(f"{k}: {a[k]!r} stored, {b[k]!r} asked" for k in a if a[k] != b[k])

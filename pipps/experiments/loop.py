@@ -11,6 +11,14 @@ I/O stays outside: the loop reports through two callbacks, ``progress(event)`` f
 fails part-way keeps every trial it finished). Each compiled program is built once per experiment
 and reused across trials; data are padded to multiples of ``gp_chunk`` so the programs compile
 once per capacity, not once per trial.
+
+**Resuming.** ``run_experiment(cfg, resume=partial)`` continues an experiment from the trials a
+partial result holds (a killed or failed run's file): the policy is the last stored one, the data
+are rebuilt from the stored observations, actions and validity flags, the GP warm start from the
+last stored hyperparameters and FITC inducing inputs, and every trial's keys are
+``fold_in(seed's trial key, trial index)``. That is everything the next trial depends on, so a
+resumed experiment equals an uninterrupted one exactly (tested); ``resumed_at`` records where it
+was picked up.
 """
 
 from __future__ import annotations
@@ -25,11 +33,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from pipps.experiments.config import QUICK_CENTRE_HIGH, QUICK_CENTRE_LOW, ExperimentConfig
+from pipps.experiments.config import QUICK_CENTRE_HIGH, QUICK_CENTRE_LOW, ExperimentConfig, config_difference
 from pipps.experiments.methods import particle_method
-from pipps.gp import FitState, GPConfig, fit, make_data, pad_to_capacity
+from pipps.gp import FitState, GPConfig, GPHyper, fit, make_data, pad_to_capacity
 from pipps.policies import init_linear_policy, init_pilco_rbf_policy, init_rbf_policy, init_rbf_policy_uniform
-from pipps.rollout import rollout, training_pairs
+from pipps.rollout import Trajectory, rollout, training_pairs
 from pipps.tasks.base import Task
 from pipps.tasks.presets import make_task
 
@@ -76,7 +84,8 @@ class ExperimentResult:
     trials: list[TrialResult]
     status: str = "running"  # running | complete | failed
     error: str = ""
-    wall_seconds: float = 0.0
+    wall_seconds: float = 0.0  # summed over the sessions that ran it (see resumed_at)
+    resumed_at: list[int] = dataclasses.field(default_factory=list)  # trial indices a resumed session began at
 
     @property
     def final_return(self) -> float:
@@ -163,6 +172,7 @@ class _Programs:
             fallen_steps = horizon - jnp.sum(trajs.valid, axis=-1)
             return trajs.total_cost + fallen_steps, jnp.all(trajs.valid, axis=-1)
 
+        self.evaluate_fn, self.evaluate_random_fn = evaluate, evaluate_random  # pure: batched.py maps them over seeds
         self.evaluate = jax.jit(evaluate)
         self.evaluate_random = jax.jit(evaluate_random)
         self.trial = jax.jit(lambda key, policy: rollout(task, key, policy))
@@ -179,14 +189,18 @@ def _make_optimizer(cfg: ExperimentConfig, task: Task):
     return _stochastic_optimizer(cfg, task)
 
 
-def _particle_prediction(task: Task, rcfg, store: int):
+def predict_particles(task: Task, rcfg, store: int, key, policy, model):
+    """The stored prediction of a trial: the first ``store`` particles' states (T+1, store, D) and
+    the mean predicted cost per step, from one particle rollout of the optimised policy. Pure."""
     from pipps.particles.forward import particle_rollout, sample_noise
 
-    @jax.jit
-    def predict(key, policy, model):
-        rec = particle_rollout(task, policy, model, sample_noise(key, task, rcfg), rcfg, jacobian=False)
-        xs = jnp.concatenate([rec.x[:1], rec.x_next], axis=0)  # (T+1, P, D)
-        return xs[:, :store], jnp.mean(rec.cost, axis=1)
+    rec = particle_rollout(task, policy, model, sample_noise(key, task, rcfg), rcfg, jacobian=False)
+    xs = jnp.concatenate([rec.x[:1], rec.x_next], axis=0)  # (T+1, P, D)
+    return xs[:, :store], jnp.mean(rec.cost, axis=1)
+
+
+def _particle_prediction(task: Task, rcfg, store: int):
+    predict = jax.jit(lambda key, policy, model: predict_particles(task, rcfg, store, key, policy, model))
 
     def run(key, policy, model):
         xs, cost = predict(key, policy, model)
@@ -219,19 +233,25 @@ def _stochastic_optimizer(cfg: ExperimentConfig, task: Task):
             done += n
             progress(dict(phase="optimize", step=done, steps=cfg.policy_evals, objective=float(info.value[-1]),
                           seconds=time.perf_counter() - start))
-        cat = lambda f: np.concatenate([f(i) for i in infos])  # noqa: E731
-        diag = lambda f: cat(lambda i: np.asarray(f(i.diagnostics)))  # noqa: E731
-        trace = {"value": cat(lambda i: i.value), "particle_objective": cat(lambda i: i.particle_objective),
-                 "grad_norm": cat(lambda i: i.grad_norm), "skipped": cat(lambda i: i.skipped)}
-        with np.errstate(all="ignore"):
-            k_lr, var_rp, var_lr = diag(lambda d: d.k_lr), diag(lambda d: d.var_rp), diag(lambda d: d.var_lr)
-            diagnostics = {
-                "k_lr": _nanmean(k_lr, 0), "var_rp": _nanmean(var_rp, 0), "var_lr": _nanmean(var_lr, 0),
-                "k_lr_per_iteration": _nanmean(k_lr, 1), "nonfinite_steps": diag(lambda d: d.nonfinite).sum(0),
-            }
+        trace, diagnostics = step_report(infos)
         return state.policy, trace, diagnostics, predict(k_pred, state.policy, model)
 
     return optimize
+
+
+def step_report(infos) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """(trace, diagnostics) of a policy optimisation from its chunks of per-step infos (host arrays)."""
+    cat = lambda f: np.concatenate([f(i) for i in infos])  # noqa: E731
+    diag = lambda f: cat(lambda i: np.asarray(f(i.diagnostics)))  # noqa: E731
+    trace = {"value": cat(lambda i: i.value), "particle_objective": cat(lambda i: i.particle_objective),
+             "grad_norm": cat(lambda i: i.grad_norm), "skipped": cat(lambda i: i.skipped)}
+    with np.errstate(all="ignore"):
+        k_lr, var_rp, var_lr = diag(lambda d: d.k_lr), diag(lambda d: d.var_rp), diag(lambda d: d.var_lr)
+        diagnostics = {
+            "k_lr": _nanmean(k_lr, 0), "var_rp": _nanmean(var_rp, 0), "var_lr": _nanmean(var_lr, 0),
+            "k_lr_per_iteration": _nanmean(k_lr, 1), "nonfinite_steps": diag(lambda d: d.nonfinite).sum(0),
+        }
+    return trace, diagnostics
 
 
 def _nanmean(a: np.ndarray, axis: int) -> np.ndarray:
@@ -298,9 +318,48 @@ def _trial_from(index, kind, traj, evals, policy_flat, timings) -> TrialResult:
                        returns, upright, policy_flat, timings)
 
 
+def record_gp(trial: TrialResult, post, info) -> None:
+    """Store a learned trial's GP: hyperparameters, training report, and FITC's inducing inputs
+    (with the data and hyperparameters they rebuild the model)."""
+    hyper = jax.device_get(post.hyper)
+    trial.gp_hyper = {"log_lengthscale": np.asarray(hyper.log_lengthscale),
+                      "log_signal": np.asarray(hyper.log_signal), "log_noise": np.asarray(hyper.log_noise)}
+    trial.gp_info = {"sparse": bool(info.sparse), "num_points": int(info.num_points),
+                     "objective": np.asarray(info.hyper.objective), "messages": "\n".join(info.messages)}
+    if info.sparse:
+        trial.gp_info["inducing"] = np.asarray(post.inputs)
+
+
+def stored_trajectory(trial: TrialResult) -> Trajectory:
+    """A stored trial as the :class:`Trajectory` it was (device arrays), e.g. for :func:`training_pairs`."""
+    return Trajectory(*(jnp.asarray(getattr(trial, n)) for n in Trajectory._fields))
+
+
 def _check_finite_data(inputs: np.ndarray, targets: np.ndarray, trial: int) -> None:
     if not (np.isfinite(inputs).all() and np.isfinite(targets).all()):
         raise FloatingPointError(f"trial {trial}: the true-system rollout produced NaN/Inf training data")
+
+
+def _check_resumable(cfg: ExperimentConfig, partial: ExperimentResult) -> None:
+    if partial.config != cfg:
+        raise ValueError(f"resume: the partial result is of another configuration "
+                         f"({config_difference(partial.config, cfg)})")
+    if [t.index for t in partial.trials] != list(range(len(partial.trials))):
+        raise ValueError(f"resume: the partial result's trials are {[t.index for t in partial.trials]}, "
+                         "not 0, 1, ... in order")
+    if len(partial.trials) > cfg.num_trials:
+        raise ValueError(f"resume: {len(partial.trials)} trials stored, the configuration has {cfg.num_trials}")
+
+
+def _fit_state_from(trials: list[TrialResult]) -> FitState | None:
+    """The GP warm start the loop held after ``trials``: the last hyperparameters, the last inducing inputs."""
+    learned = [t for t in trials if t.gp_hyper is not None]
+    if not learned:
+        return None
+    h = learned[-1].gp_hyper
+    hyper = GPHyper(*(jnp.asarray(h[n], jnp.float64) for n in ("log_lengthscale", "log_signal", "log_noise")))
+    inducing = [t.gp_info["inducing"] for t in learned if t.gp_info and t.gp_info.get("inducing") is not None]
+    return FitState(hyper, jnp.asarray(inducing[-1], jnp.float64) if inducing else None)
 
 
 def run_experiment(
@@ -308,9 +367,13 @@ def run_experiment(
     *,
     progress: Progress | None = None,
     on_trial: Callable[[ExperimentResult], None] | None = None,
+    resume: ExperimentResult | None = None,
 ) -> ExperimentResult:
     """Run one experiment; see the module docstring. Raises what fails, after ``on_trial`` saw
-    every finished trial and the result has ``status="failed"`` and the error message."""
+    every finished trial and the result has ``status="failed"`` and the error message.
+
+    ``resume``: a partial result of this same configuration (its trials 0..n−1); the run continues
+    at trial n and returns the whole experiment."""
     progress = progress or (lambda event: None)
     on_trial = on_trial or (lambda result: None)
     t_start = time.perf_counter()
@@ -324,8 +387,22 @@ def run_experiment(
     inputs, targets = [], []
     fit_state: FitState | None = None
     gpc = gp_config(cfg)
+    wall_before = 0.0
+    if resume is not None and resume.trials:
+        _check_resumable(cfg, resume)
+        result.trials = list(resume.trials)
+        result.resumed_at = [*resume.resumed_at, len(resume.trials)]
+        wall_before = resume.wall_seconds
+        unravel = ravel_pytree(policy)[1]
+        policy = unravel(jnp.asarray(resume.trials[-1].policy))
+        for t in resume.trials:
+            x_in, y_out = training_pairs(task, stored_trajectory(t))
+            inputs.append(x_in)
+            targets.append(y_out)
+        fit_state = _fit_state_from(resume.trials)
+    elapsed = lambda: wall_before + time.perf_counter() - t_start  # noqa: E731
     try:
-        for i in range(cfg.num_trials):
+        for i in range(len(result.trials), cfg.num_trials):
             k_trial, k_eval, k_opt, k_gp = jax.random.split(jax.random.fold_in(k_trials, i), 4)
             eval_keys = jax.random.split(k_eval, cfg.eval_rollouts)
             t0 = time.perf_counter()
@@ -351,14 +428,7 @@ def run_experiment(
                 evals = programs.evaluate(eval_keys, policy)
                 trial = _trial_from(i, "learned", traj, evals, flat(policy), timings)
                 timings.update(gp=t1 - t0, optimize=t2 - t1, trial=t3 - t2, evaluate=time.perf_counter() - t3)
-                hyper = jax.device_get(post.hyper)
-                trial.gp_hyper = {"log_lengthscale": np.asarray(hyper.log_lengthscale),
-                                  "log_signal": np.asarray(hyper.log_signal), "log_noise": np.asarray(hyper.log_noise)}
-                trial.gp_info = {"sparse": bool(info.sparse), "num_points": int(info.num_points),
-                                 "objective": np.asarray(info.hyper.objective),
-                                 "messages": "\n".join(info.messages)}
-                if info.sparse:  # FITC's inducing inputs: with the data and hyperparameters they rebuild the model
-                    trial.gp_info["inducing"] = np.asarray(post.inputs)
+                record_gp(trial, post, info)
                 trial.opt_trace, trial.diagnostics, trial.predicted = trace, diagnostics, predicted
             timings["total"] = time.perf_counter() - t0
             x_in, y_out = training_pairs(task, traj)
@@ -366,16 +436,16 @@ def run_experiment(
             inputs.append(x_in)
             targets.append(y_out)
             result.trials.append(trial)
-            result.wall_seconds = time.perf_counter() - t_start
+            result.wall_seconds = elapsed()
             progress(dict(phase="evaluated", trial=i, trials=cfg.num_trials, eval_return=trial.eval_return,
                           upright=trial.upright_fraction, seconds=timings["total"]))
             on_trial(result)
     except BaseException as err:  # keep what finished, say what broke, re-raise
         result.status, result.error = "failed", f"{type(err).__name__}: {err}"
-        result.wall_seconds = time.perf_counter() - t_start
+        result.wall_seconds = elapsed()
         on_trial(result)
         raise
     result.status = "complete"
-    result.wall_seconds = time.perf_counter() - t_start
+    result.wall_seconds = elapsed()
     on_trial(result)
     return result

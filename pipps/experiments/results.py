@@ -37,7 +37,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from pipps.experiments.config import ExperimentConfig, from_dict
+from pipps.experiments.config import ExperimentConfig, config_difference, from_dict
 from pipps.experiments.loop import ExperimentResult, TrialResult
 
 SCHEMA_VERSION = 1
@@ -118,6 +118,7 @@ def write_result(path: str | os.PathLike, result: ExperimentResult) -> None:
             f.attrs["error"] = result.error
             f.attrs["config_json"] = cfg_json
             f.attrs["wall_seconds"] = float(result.wall_seconds)
+            f.attrs["resumed_at"] = np.asarray(result.resumed_at, dtype=np.int64)
             f.attrs["num_trials_done"] = len(result.trials)
             f.attrs["final_return"] = float(result.final_return)
             f.attrs["success"] = bool(result.success)
@@ -140,13 +141,12 @@ def write_result(path: str | os.PathLike, result: ExperimentResult) -> None:
             tmp.unlink()
 
 
-def check_result(path: str | os.PathLike) -> str:
-    """``"complete"`` for a whole, verified result; otherwise raise :class:`ResultError` saying why.
+def verify_result(path: Path) -> tuple[str, ExperimentConfig, int]:
+    """Check a result file's integrity whatever its status: (status, configuration, trials stored).
 
-    Checks: the file opens as HDF5, has this schema version, says ``status=complete``, holds
-    one group per trial of its configuration with every required array, and its checksum matches.
+    The file opens as HDF5, has this schema version, its trials are 000, 001, ... with every
+    required array, and the checksum over the configuration and those trials matches.
     """
-    path = Path(path)
     if not path.exists():
         raise ResultError(f"{path}: no such result file")
     try:
@@ -154,15 +154,12 @@ def check_result(path: str | os.PathLike) -> str:
             version = f.attrs.get("schema_version")
             if version != SCHEMA_VERSION:
                 raise ResultError(f"{path}: schema version {version!r}, expected {SCHEMA_VERSION}")
-            status = f.attrs.get("status")
-            if status != "complete":
-                raise ResultError(f"{path}: status is {status!r} (not complete)"
-                                  + (f": {f.attrs.get('error')}" if status == "failed" else ""))
+            status = str(f.attrs.get("status"))
             cfg_json = f.attrs["config_json"]
             cfg = from_dict(json.loads(cfg_json))
             names = sorted(f["trials"].keys())
-            if len(names) != cfg.num_trials:
-                raise ResultError(f"{path}: {len(names)} trials stored, the configuration has {cfg.num_trials}")
+            if names != [f"{i:03d}" for i in range(len(names))]:
+                raise ResultError(f"{path}: trial groups {names} are not 000, 001, ... in order")
             trials = []
             for n in names:
                 g = f["trials"][n]
@@ -172,11 +169,53 @@ def check_result(path: str | os.PathLike) -> str:
                 trials.append(dict(eval_returns=g["eval_returns"][()], policy=g["policy"][()]))
             if _checksum(cfg_json, trials) != f.attrs.get("checksum"):
                 raise ResultError(f"{path}: checksum mismatch (the file was altered or damaged)")
+            error = str(f.attrs.get("error", ""))
     except ResultError:
         raise
     except Exception as err:  # h5py raises OSError/KeyError/... on damaged files
         raise ResultError(f"{path}: unreadable result file ({type(err).__name__}: {err})") from err
+    if status == "failed":
+        status = f"failed: {error}"
+    return status, cfg, len(names)
+
+
+def check_result(path: str | os.PathLike) -> str:
+    """``"complete"`` for a whole, verified result; otherwise raise :class:`ResultError` saying why.
+
+    Checks: the file opens as HDF5, has this schema version, says ``status=complete``, holds
+    one group per trial of its configuration with every required array, and its checksum matches.
+    """
+    path = Path(path)
+    status, cfg, n = verify_result(path)
+    if status != "complete":
+        raise ResultError(f"{path}: status is {status.split(':')[0]!r} (not complete)"
+                          + (status[len("failed"):] if status.startswith("failed") else ""))
+    if n != cfg.num_trials:
+        raise ResultError(f"{path}: {n} trials stored, the configuration has {cfg.num_trials}")
     return "complete"
+
+
+def stored_config(path: str | os.PathLike) -> ExperimentConfig:
+    """The configuration of a verified (complete or partial) result file; ResultError if it is damaged."""
+    return verify_result(Path(path))[1]
+
+
+def partial_result(path: str | os.PathLike, cfg: ExperimentConfig) -> ExperimentResult | None:
+    """What a sweep resumes ``cfg`` from: the finished trials of an intact, unfinished result of
+    ``cfg`` at ``path``, or None when there is nothing to resume (no file, a damaged one, or no
+    trial stored). A file of another configuration raises ResultError naming the settings that
+    differ (a sweep must not overwrite, or skip, someone else's experiment)."""
+    path = Path(path)
+    try:
+        status, stored, n = verify_result(path)
+    except ResultError:
+        return None
+    if stored != cfg:
+        raise ResultError(f"{path}: holds another configuration ({config_difference(stored, cfg)}); "
+                          "use another output folder or remove the file")
+    if n == 0 or n > cfg.num_trials:
+        return None
+    return read_result(path, verify=False)
 
 
 def is_complete(path: str | os.PathLike) -> bool:
@@ -214,7 +253,7 @@ def read_result(path: str | os.PathLike, *, verify: bool = True) -> ExperimentRe
                     setattr(t, name, _read_group(g[name]))
             trials.append(t)
         return ExperimentResult(cfg, trials, str(f.attrs["status"]), str(f.attrs["error"]),
-                                float(f.attrs["wall_seconds"]))
+                                float(f.attrs["wall_seconds"]), [int(i) for i in f.attrs.get("resumed_at", [])])
 
 
 def read_summary(path: str | os.PathLike) -> dict[str, Any]:

@@ -1,12 +1,15 @@
 """Sweeps: a grid of experiments run in parallel worker processes, resumable, one file each.
 
 ``run_sweep(configs, out_dir, jobs)`` writes ``out_dir/<experiment_name(cfg)>.h5`` per
-configuration. Before running, every existing file is verified (:func:`check_result`): a
-complete, intact result is skipped; a missing, half-written (``status=running``), failed or
-corrupt one is run again from scratch. Results are written atomically after every trial, so a
-killed sweep loses at most the experiments in flight, and because every experiment is a
-deterministic function of its configuration, a killed-and-resumed sweep gives the same results
-as an uninterrupted one.
+configuration. Before running, every existing file is verified (:func:`verify_result`): a
+complete, intact result is skipped; an intact unfinished one (``status=running`` or ``failed``)
+is resumed from its last finished trial (``run_experiment(resume=...)``); a missing or corrupt
+one is run from scratch; one that holds a different configuration (the same cell and seed with
+other settings) stops the sweep before anything runs, naming the settings that differ. Results
+are written atomically after every trial, so a killed sweep loses at most the trial in flight of
+each running experiment, and because every experiment is a deterministic function of its
+configuration and a resumed one continues from exactly the state it stopped in, a
+killed-and-resumed sweep gives the same results as an uninterrupted one.
 
 Workers are separate processes (``spawn``: JAX does not survive ``fork``). With more than one
 job, each worker pins itself to one CPU of its CPU set that no other worker holds
@@ -60,20 +63,22 @@ class SweepReport:
 
 
 def _run_one(cfg: ExperimentConfig, path: str, quiet: bool = True) -> tuple[str, str]:
-    """Worker: run one experiment, writing its file after every trial. Returns (path, error or "")."""
+    """Worker: run (or resume) one experiment, writing its file after every trial. Returns (path, error or "")."""
     from pipps.experiments.loop import run_experiment
-    from pipps.experiments.results import write_result
+    from pipps.experiments.results import partial_result, write_result
 
     try:
-        run_experiment(cfg, on_trial=lambda result: write_result(path, result))
+        run_experiment(cfg, resume=partial_result(path, cfg), on_trial=lambda result: write_result(path, result))
         return path, ""
     except Exception as err:  # the file already records the failure
         return path, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3) if not quiet else ''}"
 
 
 def plan(configs: Iterable[ExperimentConfig], out_dir: str | os.PathLike) -> tuple[list[tuple[ExperimentConfig, Path]], list[Path]]:
-    """Split the grid into (to run, already complete)."""
-    from pipps.experiments.results import is_complete
+    """Split the grid into (to run or resume, already complete). Raises ValueError when a file in
+    ``out_dir`` holds another configuration than the one the grid maps to it."""
+    from pipps.experiments.config import config_difference
+    from pipps.experiments.results import ResultError, verify_result
 
     out = Path(out_dir)
     todo, done, seen = [], [], set()
@@ -82,10 +87,15 @@ def plan(configs: Iterable[ExperimentConfig], out_dir: str | os.PathLike) -> tup
         if path in seen:
             raise ValueError(f"two configurations in the sweep map to the same file {path.name}")
         seen.add(path)
-        if is_complete(path):
-            done.append(path)
-        else:
+        try:
+            status, stored, n = verify_result(path)
+        except ResultError:  # missing or damaged: run from scratch
             todo.append((cfg, path))
+            continue
+        if stored != cfg:
+            raise ValueError(f"{path} holds another configuration ({config_difference(stored, cfg)}); "
+                             "use another output folder, or remove the file to run this one")
+        (done.append(path) if status == "complete" and n == cfg.num_trials else todo.append((cfg, path)))
     return todo, done
 
 
@@ -100,12 +110,20 @@ def run_sweep(
     on_done: Callable[[str, str, int, int], None] | None = None,
     backend: str = "local",
     address: str | None = None,
+    batched: bool = False,
+    batching: str = "auto",
 ) -> SweepReport:
     """Run every configuration whose result is not already complete; see the module docstring.
 
     ``on_done(path, error, finished, total)`` is called as each experiment ends. ``backend``:
     ``"local"`` (``jobs`` worker processes) or ``"ray"`` (at most ``jobs`` Ray tasks in flight on
     the cluster at ``address``; a Ray session this process already has is used as it is).
+
+    ``batched``: the unfinished seeds of each cell run as one batch in this process
+    (:func:`pipps.experiments.batched.run_batched`, seed axis computed per ``batching``), one cell
+    after the other; cells of methods that cannot be batched (PILCO, the fixed-seed methods) and
+    cells with a single unfinished seed run as usual. A batch starts its seeds from their first
+    trial (it does not resume part-way).
     """
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
@@ -113,6 +131,8 @@ def run_sweep(
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if address is not None and backend != "ray":
         raise ValueError("address is only used by the ray backend")
+    if batched and backend != "local":
+        raise ValueError("batched sweeps run on the local backend (one process, one accelerator)")
     ray = import_ray() if backend == "ray" else None
     start = time.perf_counter()
     todo, done = plan(list(configs), out_dir)
@@ -125,6 +145,8 @@ def run_sweep(
         if on_done:
             on_done(path, err, len(ran) + len(failed), total)
 
+    if batched:
+        todo = _run_batches(todo, batching, record)
     if ray is not None:
         if todo:
             _run_on_ray(ray, todo, jobs, address, record)
@@ -137,6 +159,45 @@ def run_sweep(
             for fut in cf.as_completed(futures):
                 record(*fut.result())
     return SweepReport(ran, [str(p) for p in done], failed, time.perf_counter() - start)
+
+
+def _run_batches(todo, batching: str, record) -> list:
+    """Run each cell's unfinished seeds as one batch; return the experiments left to run one by one."""
+    from pipps.experiments.batched import check_batchable
+
+    cells: dict = {}
+    for cfg, path in todo:
+        cells.setdefault(dataclasses.replace(cfg, seed=0), []).append((cfg, path))
+    rest = []
+    for items in cells.values():
+        cfgs = [cfg for cfg, _ in items]
+        try:
+            check_batchable(cfgs)
+        except ValueError:
+            rest += items
+            continue
+        if len(items) == 1:
+            rest += items
+            continue
+        for path, err in _run_batch(cfgs, [str(p) for _, p in items], batching):
+            record(path, err)
+    return rest
+
+
+def _run_batch(cfgs, paths: list[str], batching: str) -> list[tuple[str, str]]:
+    """One cell's seeds as one batch, each seed's file written after every trial; (path, error or "") each."""
+    from pipps.experiments.batched import run_batched
+    from pipps.experiments.results import write_result
+
+    def write(results):
+        for r, p in zip(results, paths):
+            write_result(p, r)
+
+    try:
+        results = run_batched(cfgs, on_trial=write, batching=batching)
+    except Exception as err:  # every file already records the failure
+        return [(p, f"{type(err).__name__}: {err}") for p in paths]
+    return [(p, "" if r.status == "complete" else r.error) for r, p in zip(results, paths)]
 
 
 # -- the Ray backend -------------------------------------------------------------------------------
