@@ -96,6 +96,12 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--address", default=None,
                     help="Ray cluster address (ray://HOST:10001 or auto; default: a local Ray instance); "
                          "--out must be a folder every node sees")
+    sw.add_argument("--batched", action="store_true",
+                    help="run each cell's unfinished seeds as one vectorized batch in this process (for a GPU; "
+                         "PILCO and the fixed-seed methods still run one by one)")
+    sw.add_argument("--batching", default="auto", choices=["auto", "vmap", "map"],
+                    help="how --batched computes the seed axis: vmap (one batched program), map (seeds in "
+                         "sequence inside it), auto (map on CPU, vmap on GPU)")
     sw.add_argument("--out", default="runs", help="result folder (one file per experiment)")
     sw.add_argument("--dry-run", action="store_true", help="list what would run and what is already complete")
     _add_experiment_options(sw, single=False)
@@ -240,6 +246,12 @@ def _cmd_sweep(args) -> int:
     if args.address is not None and args.backend != "ray":
         print("pipps sweep: error: --address needs --backend ray", file=sys.stderr)
         return 2
+    if args.batched and args.backend != "local":
+        print("pipps sweep: error: --batched runs on the local backend", file=sys.stderr)
+        return 2
+    if args.batching != "auto" and not args.batched:
+        print("pipps sweep: error: --batching needs --batched", file=sys.stderr)
+        return 2
     if args.backend == "ray":
         try:
             import_ray()
@@ -276,7 +288,7 @@ def _cmd_sweep(args) -> int:
         print(f"[{finished}/{total}] {status}: {path}", file=sys.stderr, flush=True)
 
     report = run_sweep(configs, args.out, jobs=args.jobs, on_done=on_done, backend=args.backend,
-                       address=args.address)
+                       address=args.address, batched=args.batched, batching=args.batching)
     print(f"ran {len(report.ran)}, skipped {len(report.skipped)} complete, failed {len(report.failed)} "
           f"in {report.seconds / 60:.1f} min")
     return 1 if report.failed else 0

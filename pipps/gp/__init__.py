@@ -11,7 +11,7 @@ See docs/gp.md for the model, objective, optimiser, FITC and the numerical guard
 """
 
 from pipps.gp.data import capacity_for, make_data, num_real, pad_to_capacity
-from pipps.gp.fit import FitInfo, GPNumericsWarning, fit
+from pipps.gp.fit import FitInfo, GPNumericsWarning, fit, fit_many
 from pipps.gp.fitc import fitc_objective, fitc_posterior, initial_inducing
 from pipps.gp.kernel import se_ard, se_ard_batched
 from pipps.gp.objective import hyper_objective, hyper_to_rows, neg_log_marginal, penalty, rows_to_hyper
@@ -21,7 +21,7 @@ from pipps.gp.types import FitcFitInfo, FitState, GPConfig, GPData, GPHyper, GPP
 
 __all__ = [
     "FitInfo", "FitState", "FitcFitInfo", "GPConfig", "GPData", "GPHyper", "GPNumericsWarning",
-    "GPPosterior", "HyperFitInfo", "capacity_for", "fit", "fit_hyper", "fit_inducing",
+    "GPPosterior", "HyperFitInfo", "capacity_for", "fit", "fit_hyper", "fit_inducing", "fit_many",
     "fitc_objective", "fitc_posterior", "full_posterior", "hyper_objective", "hyper_to_rows",
     "initial_hyper", "initial_inducing", "make_data", "neg_log_marginal", "num_real",
     "pad_to_capacity", "penalty", "predict", "rows_to_hyper", "se_ard", "se_ard_batched",

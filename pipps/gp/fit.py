@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import functools
 import warnings
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -19,6 +19,7 @@ import numpy as np
 
 from pipps.gp.data import check_hyper, make_data, num_real
 from pipps.gp.fitc import fitc_posterior, initial_inducing
+from pipps.gp.linalg import map_outputs
 from pipps.gp.posterior import full_posterior
 from pipps.gp.train import fit_hyper, fit_inducing, initial_hyper
 from pipps.gp.types import FitcFitInfo, FitState, GPConfig, GPData, GPHyper, GPPosterior, HyperFitInfo
@@ -143,6 +144,28 @@ def fit(
       ValueError: bad data or warm-start state (shapes, NaN/Inf, too few points, missing key).
       FloatingPointError: a posterior Cholesky failed even with the largest jitter.
     """
+    p = _prepare(key, data, prev, config)
+    if p.sparse:
+        out = _train_sparse(p.data, p.init, p.xu0, p.iters, config)
+    else:
+        post, hinfo, jitter, ok = _train_full(p.data, p.init, config)
+        out = (post, hinfo, None, jitter, ok)
+    return _finish(p, prev, out, config, stacklevel=3)
+
+
+class _Prepared(NamedTuple):
+    """One training's host-side preparation: what the compiled program takes, and what the report needs."""
+
+    data: GPData
+    num_points: int
+    sparse: bool
+    init: GPHyper
+    target_floored: np.ndarray
+    xu0: Optional[jax.Array]  # FITC start inducing inputs (sparse only)
+    iters: int  # FITC line searches (sparse only)
+
+
+def _prepare(key, data: GPData, prev: Optional[FitState], config: GPConfig) -> _Prepared:
     if not isinstance(data, GPData):
         raise ValueError(f"data must be a GPData, got {type(data).__name__}")
     data = make_data(data.inputs, data.targets, data.mask)
@@ -154,19 +177,25 @@ def fit(
     else:
         init = GPHyper(*(jnp.asarray(a, jnp.float64) for a in prev.hyper))
         target_floored = np.zeros(data.targets.shape[1], bool)
-    finfo = None
+    xu0, iters = None, 0
     if sparse:
         first = prev is None or prev.inducing is None
         if first and key is None:
             raise ValueError("key is required to draw the first FITC inducing inputs (N > fitc_threshold)")
         xu0 = _initial_inducing(key, data, config.num_inducing) if first else jnp.asarray(prev.inducing, jnp.float64)
         iters = config.fitc_first_iters if first else config.fitc_iters
-        post, hinfo, finfo, jitter, ok = _train_sparse(data, init, xu0, iters, config)
+    return _Prepared(data, n, sparse, init, np.asarray(target_floored), xu0, iters)
+
+
+def _finish(p: _Prepared, prev: Optional[FitState], out, config: GPConfig, stacklevel: int = 2):
+    """The report of one training: guards that acted (FitInfo and warnings), the warm-start state."""
+    post, hinfo, finfo, jitter, ok = out
+    data, n, sparse = p.data, p.num_points, p.sparse
+    if sparse:
         state = FitState(post.hyper, post.inputs)
     else:
-        post, hinfo, jitter, ok = _train_full(data, init, config)
         state = FitState(post.hyper, None if prev is None else prev.inducing)
-    hinfo = HyperFitInfo(*jax.device_get(tuple(hinfo)))._replace(target_std_floored=np.asarray(target_floored))
+    hinfo = HyperFitInfo(*jax.device_get(tuple(hinfo)))._replace(target_std_floored=p.target_floored)
     finfo = None if finfo is None else FitcFitInfo(*jax.device_get(tuple(finfo)))
     jitter, ok = np.asarray(jitter), np.asarray(ok)
     if not ok.all():
@@ -180,5 +209,57 @@ def fit(
         msgs.append(f"{dup[0]} training inputs repeat an earlier input exactly ({dup[1]} with equal targets): "
                     f"K is singular, only σ_n² keeps K + σ_n²I invertible{pulled}")
     for m in msgs:
-        warnings.warn(m, GPNumericsWarning, stacklevel=2)
+        warnings.warn(m, GPNumericsWarning, stacklevel=stacklevel)
     return post, state, FitInfo(hinfo, finfo, jitter, sparse, n, tuple(msgs), dup)
+
+
+@functools.partial(jax.jit, static_argnames="batching")
+def _train_full_many(datas: GPData, inits: GPHyper, config: GPConfig, batching: str):
+    return map_outputs(lambda a: _train_full(a[0], a[1], config), (datas, inits), batching)
+
+
+@functools.partial(jax.jit, static_argnames="batching")
+def _train_sparse_many(datas: GPData, inits: GPHyper, xu0s, iters, config: GPConfig, batching: str):
+    return map_outputs(lambda a: _train_sparse(a[0], a[1], a[2], a[3], config), (datas, inits, xu0s, iters), batching)
+
+
+def fit_many(
+    keys: Sequence[Optional[jax.Array]],
+    datas: Sequence[GPData],
+    prevs: Sequence[Optional[FitState]],
+    config: GPConfig = GPConfig(),
+    *,
+    batching: str = "auto",
+) -> list[tuple[GPPosterior, FitState, FitInfo]]:
+    """:func:`fit` for R independent data sets (the seeds of a batched experiment) at once.
+
+    The data sets must share their padded capacity. Those on the same side of ``fitc_threshold``
+    train in one compiled program with the data set as a leading batch axis (``batching``: "vmap",
+    "map" = ``lax.map``, or "auto" = map on CPU, vmap elsewhere — see
+    :func:`pipps.gp.linalg.map_outputs` for why CPU maps); each result is what :func:`fit` returns
+    for that data set, warnings included.
+    """
+    if not (len(keys) == len(datas) == len(prevs)) or not datas:
+        raise ValueError(f"fit_many needs equally many keys, data sets and states, got "
+                         f"{len(keys)}, {len(datas)}, {len(prevs)}")
+    preps = [_prepare(k, d, pv, config) for k, d, pv in zip(keys, datas, prevs)]
+    shapes = {(p.data.inputs.shape, p.data.targets.shape) for p in preps}
+    if len(shapes) > 1:
+        raise ValueError(f"fit_many needs data sets of one padded capacity, got shapes {sorted(shapes)}")
+    stack = lambda xs: jax.tree_util.tree_map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
+    outs: list = [None] * len(preps)
+    for sparse in (False, True):
+        idx = [i for i, p in enumerate(preps) if p.sparse == sparse]
+        if not idx:
+            continue
+        datas_b, inits_b = stack([preps[i].data for i in idx]), stack([preps[i].init for i in idx])
+        if sparse:
+            xu0s = stack([preps[i].xu0 for i in idx])
+            iters = jnp.asarray([preps[i].iters for i in idx])
+            res = _train_sparse_many(datas_b, inits_b, xu0s, iters, config, batching)
+        else:
+            post, hinfo, jitter, ok = _train_full_many(datas_b, inits_b, config, batching)
+            res = (post, hinfo, None, jitter, ok)
+        for j, i in enumerate(idx):
+            outs[i] = jax.tree_util.tree_map(lambda a: a[j], res)
+    return [_finish(p, pv, out, config, stacklevel=3) for p, pv, out in zip(preps, prevs, outs)]
