@@ -100,8 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run each cell's unfinished seeds as one vectorized batch in this process (for a GPU; "
                          "PILCO and the fixed-seed methods still run one by one)")
     sw.add_argument("--batching", default="auto", choices=["auto", "vmap", "map"],
-                    help="how --batched computes the seed axis: vmap (one batched program), map (seeds in "
-                         "sequence inside it), auto (map on CPU, vmap on GPU)")
+                    help="how --batched computes the seed axis: vmap (one batched program; on CPU the GP training "
+                         "still maps, batched CPU LAPACK deadlocks), map (seeds in sequence inside it), auto "
+                         "(map on CPU, vmap on GPU)")
     sw.add_argument("--out", default="runs", help="result folder (one file per experiment)")
     sw.add_argument("--dry-run", action="store_true", help="list what would run and what is already complete")
     _add_experiment_options(sw, single=False)

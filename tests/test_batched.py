@@ -62,16 +62,27 @@ def test_batched_seeds_equal_separate_runs(unbatched):
 
 
 def test_vmapped_seeds_equal_separate_runs(unbatched):
-    """The accelerator path: one vmapped program per phase (run here on CPU; N = 60 is below the
-    sizes at which jaxlib's batched CPU LAPACK was seen to deadlock).
+    """The accelerator path: vmapped trials, rollouts and optimiser steps. On CPU (here) the GP
+    training's seed axis stays mapped (batched CPU LAPACK deadlocks with two XLA threads; a
+    vmapped GP training is exercised only on an accelerator).
 
-    Vectorized programs reassociate more than mapped ones, and the FITC L-BFGS amplifies that:
-    measured 1.2e-7 in the inducing inputs and then 4.8e-9 absolute (5.8e-7 relative) in a
-    policy weight of size 0.013 after the FITC trial. A batching bug (a wrong key, seed slot or
-    model) moves these by O(1)."""
+    Vectorized programs reassociate sums, and the optimisation amplifies that; with the GP
+    vmapped too (one pinned core) the largest gap measured was 5.8e-7 relative in a policy weight
+    after the FITC trial. A batching bug (a wrong key, seed slot or model) moves these by O(1)."""
     batched = run_batched([small(s) for s in SEEDS], batching="vmap")
     for a, b in zip(unbatched, batched):
         assert_close_results(a, b, rtol=1e-6, atol=1e-8)
+
+
+def test_fit_many_refuses_vmap_on_cpu():
+    import jax
+
+    from pipps.gp import GPConfig, fit_many
+
+    if jax.default_backend() != "cpu":
+        pytest.skip("the refusal is CPU-only")
+    with pytest.raises(ValueError, match="deadlock"):
+        fit_many([None], [None], [None], GPConfig(), batching="vmap")
 
 
 @pytest.mark.parametrize(

@@ -11,10 +11,14 @@ and returns to tolerance).
 
 ``batching`` says how the seed axis is computed: ``"vmap"`` (one batched program: what a GPU
 wants), ``"map"`` (``lax.map``, the seeds one after the other inside one compiled program), or
-``"auto"`` (map on CPU, vmap elsewhere). CPU maps because jaxlib 0.10's batched LAPACK calls can
-deadlock inside loops there (:func:`pipps.gp.linalg.map_outputs`); on one CPU core a batch is not
-faster than the seeds run one after another anyway (the GP products already run at the core's
-peak, docs/performance.md), so the batched mode is for accelerators.
+``"auto"`` (map on CPU, vmap elsewhere). On CPU the GP training's seed axis is always mapped:
+jaxlib 0.10's batched LAPACK calls deadlock inside loops there once XLA runs two threads
+(:func:`pipps.gp.linalg.map_outputs`; a vmapped two-seed GP training hung in this project's CI
+check), so ``"vmap"`` on CPU vectorizes the trials, rollouts and optimiser only. (The GR, GS and
+DEL estimators factor covariances in the rollout; vmapping them on a multi-threaded CPU risks the
+same deadlock.) On one CPU core a batch is not faster than the seeds run one after another anyway
+(the GP products already run at the core's peak, docs/performance.md), so the batched mode is
+for accelerators.
 
 Scope: the stochastic-gradient particle methods (RP, GR, LR, TP and their variants, GTP, GLR,
 DEL). PILCO and the fixed-seed quasi-Newton methods (RP_FS, GR_FS) have data-dependent line
@@ -136,6 +140,7 @@ def run_batched(
     S = len(cfgs)
     task = make_experiment_task(cfg)
     prog = _BatchedPrograms(cfg, task, batching)
+    gp_batching = "map" if jax.default_backend() == "cpu" else batching  # module docstring: CPU LAPACK
     gpc = gp_config(cfg)
     results = [ExperimentResult(c, []) for c in cfgs]
     k_policy, k_trials = zip(*(jax.random.split(jax.random.PRNGKey(c.seed)) for c in cfgs))
@@ -184,7 +189,7 @@ def run_batched(
                 datas = [pad_to_capacity(make_data(np.concatenate(inputs[s]), np.concatenate(targets[s])), capacity)
                          for s in active]
                 progress(dict(phase="gp", trial=i, points=max(counts), seeds=len(active)))
-                fits = fit_many([k[3] for k in keys], datas, [fit_states[s] for s in active], gpc, batching=batching)
+                fits = fit_many([k[3] for k in keys], datas, [fit_states[s] for s in active], gpc, batching=gp_batching)
                 t1 = time.perf_counter()
                 act0 = list(active)  # the seeds this trial started with; fits, keys follow this order
                 pos = {s: j for j, s in enumerate(act0)}

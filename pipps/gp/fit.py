@@ -235,10 +235,14 @@ def fit_many(
 
     The data sets must share their padded capacity. Those on the same side of ``fitc_threshold``
     train in one compiled program with the data set as a leading batch axis (``batching``: "vmap",
-    "map" = ``lax.map``, or "auto" = map on CPU, vmap elsewhere — see
-    :func:`pipps.gp.linalg.map_outputs` for why CPU maps); each result is what :func:`fit` returns
-    for that data set, warnings included.
+    "map" = ``lax.map``, or "auto" = map on CPU, vmap elsewhere); each result is what :func:`fit`
+    returns for that data set, warnings included. "vmap" is refused on CPU: jaxlib 0.10's batched
+    LAPACK deadlocks there once XLA runs two threads (seen here with two data sets of 60 points;
+    :func:`pipps.gp.linalg.map_outputs`).
     """
+    if batching == "vmap" and jax.default_backend() == "cpu":
+        raise ValueError("fit_many: batching='vmap' on CPU can deadlock (jaxlib's batched LAPACK in loops); "
+                         "use 'map' or 'auto'")
     if not (len(keys) == len(datas) == len(prevs)) or not datas:
         raise ValueError(f"fit_many needs equally many keys, data sets and states, got "
                          f"{len(keys)}, {len(datas)}, {len(prevs)}")
