@@ -340,7 +340,7 @@ def fitc_run(tmp_path_factory):
     return result, path
 
 
-@pytest.mark.parametrize("at", [2, 3])
+@pytest.mark.parametrize("at", [pytest.param(2, marks=pytest.mark.slow), 3])
 def test_a_resumed_experiment_equals_an_uninterrupted_one(fitc_run, tmp_path, at):
     """Killed after trial ``at``−1, continued from the file: the same trials, bit for bit. At 2 the
     warm start is a full GP's hyperparameters; at 3 also FITC's stored inducing inputs."""

@@ -158,6 +158,9 @@ def verify_result(path: Path) -> tuple[str, ExperimentConfig, int]:
             cfg_json = f.attrs["config_json"]
             cfg = from_dict(json.loads(cfg_json))
             names = sorted(f["trials"].keys())
+            recorded = f.attrs.get("num_trials_done")
+            if recorded is not None and len(names) != int(recorded):
+                raise ResultError(f"{path}: {len(names)} trials stored, the file records {int(recorded)}")
             if names != [f"{i:03d}" for i in range(len(names))]:
                 raise ResultError(f"{path}: trial groups {names} are not 000, 001, ... in order")
             trials = []
