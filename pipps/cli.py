@@ -271,11 +271,10 @@ def _cmd_sweep(args) -> int:
         print("pipps sweep: error: no cell of the table matches --methods/--k", file=sys.stderr)
         return 2
     try:
-        todo, done = plan(configs, args.out)
+        todo, done, resumes = plan(configs, args.out)
     except ValueError as err:
         print(f"pipps sweep: error: {err}", file=sys.stderr)
         return 2
-    resumes = _resume_points(todo)
     print(f"{len(configs)} experiments: {len(done)} already complete, {len(todo)} to run "
           f"({sum(1 for n in resumes if n)} resumed from their last finished trial) with {args.jobs} job(s) "
           f"({args.backend}) -> {args.out}/", file=sys.stderr)
@@ -293,19 +292,6 @@ def _cmd_sweep(args) -> int:
     print(f"ran {len(report.ran)}, skipped {len(report.skipped)} complete, failed {len(report.failed)} "
           f"in {report.seconds / 60:.1f} min")
     return 1 if report.failed else 0
-
-
-def _resume_points(todo) -> list[int]:
-    """For each planned experiment, the trial a sweep resumes it at (0: from scratch)."""
-    from pipps.experiments.results import ResultError, verify_result
-
-    points = []
-    for _, path in todo:
-        try:
-            points.append(verify_result(path)[2])
-        except ResultError:
-            points.append(0)
-    return points
 
 
 def _result_paths(items):

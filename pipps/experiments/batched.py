@@ -49,8 +49,8 @@ from pipps.experiments.loop import (
     ExperimentResult,
     Progress,
     _check_finite_data,
-    _Programs,
     _trial_from,
+    evaluate_rollouts,
     gp_config,
     init_policy,
     make_experiment_task,
@@ -99,8 +99,6 @@ class _BatchedPrograms:
         from pipps.optimizers.normalized import normalized_momentum
         from pipps.propagation.update import init_policy_opt_state, make_policy_optimizer
 
-        single = _Programs(cfg, task)  # the unbatched evaluation functions, mapped below
-
         def smap(fn):
             return lambda *xs: map_outputs(lambda a: fn(*a), xs, batching)
 
@@ -110,9 +108,9 @@ class _BatchedPrograms:
         store = cfg.store_particles
 
         self.trial_random = jax.jit(smap(lambda k: rollout(task, k, None)))
-        self.evaluate_random = jax.jit(smap(single.evaluate_random_fn))
+        self.evaluate_random = jax.jit(smap(lambda k: evaluate_rollouts(task, k, None)))
         self.trial = jax.jit(smap(lambda k, p: rollout(task, k, p)))
-        self.evaluate = jax.jit(smap(single.evaluate_fn))
+        self.evaluate = jax.jit(smap(lambda k, p: evaluate_rollouts(task, k, p)))
         self.init = jax.jit(smap(lambda k, p, m: init_policy_opt_state(
             k, p, m, task=task, config=rcfg, estimator=est, optimizer=opt)))
         self.run = jax.jit(lambda k, s, m, n: smap(lambda kk, ss, mm: run(kk, ss, mm, num_steps=n))(k, s, m),

@@ -155,26 +155,21 @@ def gp_config(cfg: ExperimentConfig) -> GPConfig:
                     fitc_iters=cfg.fitc_iters, fitc_first_iters=cfg.fitc_first_iters)
 
 
+def evaluate_rollouts(task: Task, keys, policy):
+    """(returns, upright) of one true-system rollout per key with ``policy`` (None: random actions);
+    fallen steps are charged cost 1. Pure."""
+    trajs = jax.vmap(lambda k: rollout(task, k, policy))(keys)
+    fallen_steps = task.horizon - jnp.sum(trajs.valid, axis=-1)
+    return trajs.total_cost + fallen_steps, jnp.all(trajs.valid, axis=-1)
+
+
 class _Programs:
     """The compiled pieces of one experiment, built once and reused across trials."""
 
     def __init__(self, cfg: ExperimentConfig, task: Task):
         self.cfg, self.task = cfg, task
-        horizon = task.horizon
-
-        def evaluate(keys, policy):
-            trajs = jax.vmap(lambda k: rollout(task, k, policy))(keys)
-            fallen_steps = horizon - jnp.sum(trajs.valid, axis=-1)
-            return trajs.total_cost + fallen_steps, jnp.all(trajs.valid, axis=-1)
-
-        def evaluate_random(keys):
-            trajs = jax.vmap(lambda k: rollout(task, k, None))(keys)
-            fallen_steps = horizon - jnp.sum(trajs.valid, axis=-1)
-            return trajs.total_cost + fallen_steps, jnp.all(trajs.valid, axis=-1)
-
-        self.evaluate_fn, self.evaluate_random_fn = evaluate, evaluate_random  # pure: batched.py maps them over seeds
-        self.evaluate = jax.jit(evaluate)
-        self.evaluate_random = jax.jit(evaluate_random)
+        self.evaluate = jax.jit(lambda keys, policy: evaluate_rollouts(task, keys, policy))
+        self.evaluate_random = jax.jit(lambda keys: evaluate_rollouts(task, keys, None))
         self.trial = jax.jit(lambda key, policy: rollout(task, key, policy))
         self.trial_random = jax.jit(lambda key: rollout(task, key, None))
         self.optimizer = _make_optimizer(cfg, task)

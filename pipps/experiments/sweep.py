@@ -74,14 +74,17 @@ def _run_one(cfg: ExperimentConfig, path: str, quiet: bool = True) -> tuple[str,
         return path, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3) if not quiet else ''}"
 
 
-def plan(configs: Iterable[ExperimentConfig], out_dir: str | os.PathLike) -> tuple[list[tuple[ExperimentConfig, Path]], list[Path]]:
-    """Split the grid into (to run or resume, already complete). Raises ValueError when a file in
-    ``out_dir`` holds another configuration than the one the grid maps to it."""
+def plan(
+    configs: Iterable[ExperimentConfig], out_dir: str | os.PathLike
+) -> tuple[list[tuple[ExperimentConfig, Path]], list[Path], list[int]]:
+    """Split the grid into (to run or resume, already complete, the trial each of the first
+    resumes at: 0 from scratch). Raises ValueError when a file in ``out_dir`` holds another
+    configuration than the one the grid maps to it."""
     from pipps.experiments.config import config_difference
     from pipps.experiments.results import ResultError, verify_result
 
     out = Path(out_dir)
-    todo, done, seen = [], [], set()
+    todo, done, starts, seen = [], [], [], set()
     for cfg in configs:
         path = out / f"{experiment_name(cfg)}.h5"
         if path in seen:
@@ -91,12 +94,17 @@ def plan(configs: Iterable[ExperimentConfig], out_dir: str | os.PathLike) -> tup
             status, stored, n = verify_result(path)
         except ResultError:  # missing or damaged: run from scratch
             todo.append((cfg, path))
+            starts.append(0)
             continue
         if stored != cfg:
             raise ValueError(f"{path} holds another configuration ({config_difference(stored, cfg)}); "
                              "use another output folder, or remove the file to run this one")
-        (done.append(path) if status == "complete" and n == cfg.num_trials else todo.append((cfg, path)))
-    return todo, done
+        if status == "complete" and n == cfg.num_trials:
+            done.append(path)
+        else:
+            todo.append((cfg, path))
+            starts.append(n)
+    return todo, done, starts
 
 
 BACKENDS = ("local", "ray")
@@ -135,7 +143,7 @@ def run_sweep(
         raise ValueError("batched sweeps run on the local backend (one process, one accelerator)")
     ray = import_ray() if backend == "ray" else None
     start = time.perf_counter()
-    todo, done = plan(list(configs), out_dir)
+    todo, done, _ = plan(list(configs), out_dir)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     ran, failed = [], {}
     total = len(todo)
