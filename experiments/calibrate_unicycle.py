@@ -23,7 +23,12 @@ the robot up for 2 s in 95 % of rollouts; the best policies of the family stay u
 Balancing needs the nonlinear steer-into-the-fall effect (forward speed × yaw rate), which only a
 learned policy can find. The threshold therefore still has to be calibrated on learned policies.
 
-    python experiments/calibrate_unicycle.py            # the numbers in docs/experiments.md
+Learned policies now exist (the Table 4.4 runs), and ``--results`` calibrates on them: every
+learned trial of the given result files is one policy with its 30 evaluation rollouts, and
+:func:`pipps.experiments.calibration.fit_return_threshold` finds the τ that agrees best.
+
+    python experiments/calibrate_unicycle.py --perturbations 4     # regulator family (docs/experiments.md)
+    python experiments/calibrate_unicycle.py --results results/thesis/unicycle_*.h5
 """
 
 from __future__ import annotations
@@ -37,6 +42,8 @@ import scipy.linalg
 
 import pipps  # noqa: F401  (float64)
 from pipps.experiments import resolve_config
+from pipps.experiments.calibration import fit_return_threshold
+from pipps.experiments.results import read_result
 from pipps.experiments.loop import _Programs, make_experiment_task
 from pipps.policies import LinearPolicy
 
@@ -74,7 +81,11 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--perturbations", type=int, default=8, help="random perturbations per (gain, σ)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--results", nargs="+", metavar="H5",
+                    help="calibrate on the learned trials of these unicycle result files (complete or not)")
     args = ap.parse_args(argv)
+    if args.results:
+        return calibrate_on_results(args.results)
 
     cfg = resolve_config("thesis", "unicycle")
     task = make_experiment_task(cfg)
@@ -97,11 +108,7 @@ def main(argv=None):
                 rows.append((gain, sigma, float(ret.mean()), float(up.mean())))
     rows = np.array(rows)
     success = rows[:, 3] >= cfg.upright_fraction
-    best = None
-    for tau in np.unique(np.round(rows[:, 2], 3)):
-        agree = np.mean((rows[:, 2] < tau + 1e-9) == success)
-        if best is None or agree > best[1]:
-            best = (tau, agree)
+    fit = fit_return_threshold(rows[:, 2], success)
     ctrb = np.hstack([np.linalg.matrix_power(A, i) @ B for i in range(task.model_dim)])
     print(f"controllability matrix rank {np.linalg.matrix_rank(ctrb, tol=1e-9)} of {task.model_dim}; "
           f"|eigenvalues| of A: {np.round(np.sort(np.abs(np.linalg.eigvals(A)))[::-1], 3).tolist()}")
@@ -111,14 +118,52 @@ def main(argv=None):
     for gain in gains:
         for sigma in sigmas:
             sel = (rows[:, 0] == gain) & (rows[:, 1] == sigma)
+            if not sel.any():  # --perturbations 0
+                continue
             r, u = rows[sel, 2], rows[sel, 3]
             print(f"| {gain:g} | {sigma:g} | {sel.sum()} | {r.mean():.2f} ({r.min():.2f}–{r.max():.2f}) | "
                   f"{u.mean():.2f} ({u.min():.2f}–{u.max():.2f}) |")
     ok_max = rows[success, 2].max() if success.any() else float("nan")
     bad_min = rows[~success, 2].min() if (~success).any() else float("nan")
     print(f"largest return among successful policies {ok_max:.3f}; smallest among failing ones {bad_min:.3f}")
-    print(f"best return threshold tau = {best[0]:.3f}: 'return < tau' agrees with the upright criterion "
-          f"for {best[1]:.1%} of the policies")
+    print(_describe(fit))
+
+
+def _describe(fit) -> str:
+    return (f"best return threshold: any tau in ({fit.low:.3f}, {fit.high:.3f}]; 'return < tau' agrees with the "
+            f"upright criterion for {fit.n - fit.errors} of {fit.n} policies ({fit.agreement:.1%}): "
+            f"{fit.false_pass} failing policies pass, {fit.false_fail} successful ones fail")
+
+
+def calibrate_on_results(paths) -> None:
+    """Each learned trial of each file is a policy: its mean evaluation return against whether at
+    least ``upright_fraction`` of its evaluation rollouts stayed upright."""
+    rows = []  # (seed, trial, mean return, upright fraction)
+    fraction = None
+    for path in paths:
+        res = read_result(path, verify=False)
+        if res.config.task != "unicycle":
+            raise SystemExit(f"{path}: task {res.config.task!r}, not the unicycle")
+        if fraction is not None and res.config.upright_fraction != fraction:
+            raise SystemExit(f"{path}: upright_fraction {res.config.upright_fraction} differs from {fraction}")
+        fraction = res.config.upright_fraction
+        for t in res.trials:
+            if t.kind == "learned":
+                rows.append((res.config.seed, t.index, t.eval_return, t.upright_fraction))
+    if not rows:
+        raise SystemExit("no learned trials in these files")
+    returns = np.array([r[2] for r in rows])
+    upright = np.array([r[3] for r in rows])
+    success = upright >= fraction
+    fit = fit_return_threshold(returns, success)
+    print(f"{len(rows)} learned policies from {len(paths)} files, {success.sum()} upright in >= {fraction:.0%} "
+          f"of their evaluation rollouts")
+    print("| policy (seed, trial) | mean return | upright fraction | success | return < tau |")
+    print("|---|---|---|---|---|")
+    tau = fit.high if np.isfinite(fit.high) else fit.low + 1.0
+    for (seed, index, ret, up), ok in sorted(zip(rows, success), key=lambda x: x[0][2]):
+        print(f"| {seed}, {index} | {ret:.2f} | {up:.2f} | {'yes' if ok else 'no'} | {'yes' if ret < tau else 'no'} |")
+    print(_describe(fit))
 
 
 if __name__ == "__main__":
