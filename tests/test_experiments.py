@@ -32,7 +32,7 @@ from pipps.experiments.results import (
     write_result,
 )
 from pipps.experiments.sweep import experiment_name, ray_task, run_sweep, worker_pool
-from pipps.experiments.tables import TABLES, collect, render_table, table_configs, wilson_interval
+from pipps.experiments.tables import TABLES, collect, render_curves, render_table, table_configs, wilson_interval
 
 TINY = dict(num_learned=1, num_particles=8, policy_evals=6, eval_rollouts=3, gp_max_iters=10, progress_chunk=3,
             store_particles=4)
@@ -151,6 +151,25 @@ def test_table_counts_cells_and_flags_disagreement():
     mixed = collect(TABLES["4.1"], summaries)
     assert next(r for r in mixed if r.cell.row == "k = 1" and r.cell.method == "tp").mixed == ("centre_std",)
     assert "pools results whose settings differ in centre_std" in render_table(TABLES["4.1"], mixed)
+    empty = render_table(TABLES["4.4"], collect(TABLES["4.4"], summaries))  # cart-pole results only
+    assert empty == "**Table 4.4 — unicycle balancing**: no complete results for this table."
+
+
+def test_curves_show_each_trial_and_the_unicycles_final_upright_fraction():
+    cart = table_configs("4.1", 1, "thesis", methods=["tp"], ks=[1.0])[0]
+    uni = table_configs("4.4", 1, "thesis", methods=["tp"])[0]
+    summaries = [
+        {"config": cart, "success": True, "eval_return": np.array([29.9, 8.25]), "upright_fraction": np.ones(2),
+         "wall_seconds": 120.0},
+        {"config": uni, "success": False, "eval_return": np.array([15.4, 3.0, 1.5]),
+         "upright_fraction": np.array([0.0, 0.9, 0.9333]), "wall_seconds": 600.0},
+    ]
+    lines = render_curves(summaries).splitlines()
+    assert lines[0] == "| experiment | success | 0 | 1 | 2 | final upright | wall (min) |"
+    assert lines[1].count("|---") == 7
+    assert lines[2] == "| cartpole_swingup TP k=1 seed 0 | yes | 29.9 | 8.2 |  |  | 2 |"
+    assert lines[3] == "| unicycle TP k=1 seed 0 | no | 15.4 | 3.0 | 1.5 | 0.93 | 10 |"
+    assert "final upright" not in render_curves(summaries[:1])
 
 
 # -- the loop and its results ----------------------------------------------------------------------

@@ -230,6 +230,8 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
     ``ours [lo, hi] (n) / thesis``, with ``!`` where the thesis value lies outside our interval."""
     by = {(r.cell.row, r.cell.method): r for r in results}
     methods = [m for m in table.methods if show_empty or any(by.get((row, m)) and by[(row, m)].n for row in table.rows)]
+    if not methods:
+        return f"**{table.title}**: no complete results for this table."
     lines = [f"**{table.title}** — ours: success rate [95 % Wilson interval] (seeds) / thesis "
              "(`!`: the thesis value lies outside our interval)", "",
              "| | " + " | ".join(METHODS[m] for m in methods) + " |", "|---" * (len(methods) + 1) + "|"]
@@ -262,11 +264,16 @@ def render_curves(summaries: list[dict[str, Any]]) -> str:
     if not rows:
         return ""
     n = max(len(s["eval_return"]) for s in rows)
-    lines = ["| experiment | success | " + " | ".join(str(i) for i in range(n)) + " | wall (min) |",
-             "|---" * (n + 3) + "|"]
+    # the unicycle's success is judged on the upright fraction of the final trial's rollouts
+    upright = any(s["config"].task == "unicycle" for s in rows)
+    lines = ["| experiment | success | " + " | ".join(str(i) for i in range(n))
+             + (" | final upright" if upright else "") + " | wall (min) |",
+             "|---" * (n + 3 + upright) + "|"]
     for s in rows:
         c = s["config"]
         vals = [f"{v:.1f}" for v in s["eval_return"]] + [""] * (n - len(s["eval_return"]))
+        if upright:
+            vals.append(f"{s['upright_fraction'][-1]:.2f}" if c.task == "unicycle" else "")
         lines.append(f"| {c.task} {METHODS[c.method]} k={c.k:g} seed {c.seed} | {'yes' if s['success'] else 'no'} | "
                      + " | ".join(vals) + f" | {s['wall_seconds'] / 60:.0f} |")
     return "\n".join(lines)
