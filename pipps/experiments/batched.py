@@ -61,7 +61,7 @@ from pipps.experiments.loop import (
 )
 from pipps.experiments.methods import particle_method
 from pipps.gp import capacity_for, fit_many, make_data, pad_to_capacity
-from pipps.gp.linalg import map_outputs
+from pipps.gp.linalg import map_outputs, stack_trees
 from pipps.rollout import rollout, training_pairs
 
 BATCHINGS = ("auto", "vmap", "map")
@@ -82,10 +82,6 @@ def check_batchable(cfgs: Sequence[ExperimentConfig]) -> None:
     if base.is_pilco or base.fixed_seed:
         raise ValueError(f"batched: method {base.method!r} optimises with per-seed quasi-Newton line searches and "
                          "runs unbatched; the batched mode takes the stochastic-gradient particle methods")
-
-
-def _stack(trees):
-    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *trees)
 
 
 def _take(tree, i):
@@ -194,9 +190,9 @@ def run_batched(
                 new_policy, infos_of, predicted = {}, {}, {}
                 for group in _shape_groups([post for post, _, _ in fits]):  # one group unless full and FITC mix
                     idx = [act0[j] for j in group]
-                    models = _stack([fits[j][0] for j in group])
+                    models = stack_trees([fits[j][0] for j in group])
                     k_opt = [jax.random.split(keys[j][2], 3) for j in group]
-                    state = prog.init(jnp.stack([k[0] for k in k_opt]), _stack([policies[s] for s in idx]), models)
+                    state = prog.init(jnp.stack([k[0] for k in k_opt]), stack_trees([policies[s] for s in idx]), models)
                     chunks, done, start = [], 0, time.perf_counter()
                     while done < cfg.policy_evals:
                         n = min(chunk, cfg.policy_evals - done)
@@ -220,7 +216,7 @@ def run_batched(
                 if not active:
                     break
                 keep = jnp.asarray([pos[s] for s in active])
-                stacked = _stack([new_policy[s] for s in active])
+                stacked = stack_trees([new_policy[s] for s in active])
                 trajs = prog.trial(k_trial[keep], stacked)
                 t3 = time.perf_counter()
                 evals = prog.evaluate(k_eval[keep], stacked)

@@ -19,7 +19,7 @@ import numpy as np
 
 from pipps.gp.data import check_hyper, make_data, num_real
 from pipps.gp.fitc import fitc_posterior, initial_inducing
-from pipps.gp.linalg import map_outputs
+from pipps.gp.linalg import map_outputs, stack_trees
 from pipps.gp.posterior import full_posterior
 from pipps.gp.train import fit_hyper, fit_inducing, initial_hyper
 from pipps.gp.types import FitcFitInfo, FitState, GPConfig, GPData, GPHyper, GPPosterior, HyperFitInfo
@@ -250,15 +250,14 @@ def fit_many(
     shapes = {(p.data.inputs.shape, p.data.targets.shape) for p in preps}
     if len(shapes) > 1:
         raise ValueError(f"fit_many needs data sets of one padded capacity, got shapes {sorted(shapes)}")
-    stack = lambda xs: jax.tree_util.tree_map(lambda *a: jnp.stack(a), *xs)  # noqa: E731
     outs: list = [None] * len(preps)
     for sparse in (False, True):
         idx = [i for i, p in enumerate(preps) if p.sparse == sparse]
         if not idx:
             continue
-        datas_b, inits_b = stack([preps[i].data for i in idx]), stack([preps[i].init for i in idx])
+        datas_b, inits_b = stack_trees([preps[i].data for i in idx]), stack_trees([preps[i].init for i in idx])
         if sparse:
-            xu0s = stack([preps[i].xu0 for i in idx])
+            xu0s = stack_trees([preps[i].xu0 for i in idx])
             iters = jnp.asarray([preps[i].iters for i in idx])
             res = _train_sparse_many(datas_b, inits_b, xu0s, iters, config, batching)
         else:

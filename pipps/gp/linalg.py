@@ -89,3 +89,8 @@ def map_outputs(fn, xs, batching: str = "auto"):
     if how == "vmap":
         return jax.vmap(fn)(xs)
     raise ValueError(f"batching must be 'auto', 'map' or 'vmap', got {batching!r}")
+
+
+def stack_trees(trees):
+    """Stack equally shaped pytrees along a new leading axis (the inverse of indexing it)."""
+    return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *trees)
