@@ -1,22 +1,23 @@
 """Per-trial seconds of result files, with the GP size and whether FITC ran (docs/results.md, wall times).
 
     python experiments/trial_timings.py results/thesis/unicycle_*.h5
+
+Unfinished files are read too (no checksum verification), so a running sweep can be watched.
 """
 
 import sys
 
-import h5py
+from pipps.experiments.results import read_result
 
 
 def main(paths) -> None:
     for path in paths:
-        with h5py.File(path, "r") as f:
-            print(f"{path}: wall {f.attrs['wall_seconds'] / 60:.1f} min")
-            for name in sorted(f["trials"]):
-                g = f["trials"][name]
-                gp = g["gp"].attrs if "gp" in g else {}
-                print(f"  trial {name} {g.attrs['kind']:>7}: {g['timings'].attrs['total']:7.0f} s  "
-                      f"N = {gp.get('num_points', '-')}  FITC = {gp.get('sparse', '-')}")
+        result = read_result(path, verify=False)
+        print(f"{path}: wall {result.wall_seconds / 60:.1f} min")
+        for t in result.trials:
+            gp = t.gp_info or {}
+            print(f"  trial {t.index:03d} {t.kind:>7}: {t.timings['total']:7.0f} s  "
+                  f"N = {gp.get('num_points', '-')}  FITC = {gp.get('sparse', '-')}")
 
 
 if __name__ == "__main__":
