@@ -300,10 +300,18 @@ def test_degenerate_data_stays_finite_and_in_range():
     assert info.hyper.target_std_floored.tolist() == [True, True, False]
     assert any("input std floor" in m and "[1]" in m for m in msgs)
     assert any("target std" in m for m in msgs)
-    mean, var = predict(post, jnp.asarray(x[:5]), variance=True)
+    mean, var = predict(post, jnp.asarray(x), variance=True)
     assert np.all(np.isfinite(mean)) and np.all(np.isfinite(var))
-    np.testing.assert_allclose(mean[:, 0], 0.4, atol=1e-2)  # the constant is explained by σ_f
-    np.testing.assert_allclose(mean[:, 2], y[:5, 2], atol=1e-2)
+    # How closely the mean meets the noise-free targets depends on where L-BFGS stops on this singular
+    # objective, and that depends on the summation order (0.4118 at a point on AVX-512, < 0.41 on AVX2).
+    # What holds at any hyperparameters: y − m = σ²Ay with A = (K + σ²I)⁻¹, σ² = σ_n² + jitter, and
+    # λ_max(A) ≤ 1/σ², so |y_i − m_i| ≤ ‖σ²Ay‖₂ ≤ σ²·‖A^½‖·‖A^½y‖ = σ·sqrt(yᵀβ) (β = Ay, stored).
+    sigma2 = np.exp(2 * np.asarray(post.hyper.log_noise)) + info.posterior_jitter
+    for e in (0, 2):  # the constant and the noise-free sine
+        bound = np.sqrt(sigma2[e] * float(y[:, e] @ np.asarray(post.beta)[e, :30]))
+        assert np.max(np.abs(mean[:, e] - y[:, e])) <= bound * (1 + 1e-6) + 1e-12, (e, bound)
+        assert bound < 0.1 * np.max(np.abs(y[:, e]))  # and the bound itself says the data are fitted
+    assert np.exp(post.hyper.log_signal[0]) > 10 * np.sqrt(sigma2[0])  # the constant is carried by σ_f, not σ_n
 
 
 def test_noise_floor_acts_and_is_reported():
