@@ -66,6 +66,16 @@ def make_data(inputs, targets, mask=None) -> GPData:
                              + (" ..." if rows.size > 10 else ""))
     if int(m.sum()) < 2:
         raise ValueError(f"need at least 2 real (unmasked) training points, got {int(m.sum())}")
+    # Training squares differences and sums over the rows (the SE kernel's ((x − x')/ℓ)², the
+    # standard deviations that initialise ℓ and σ_f, yᵀβ): with N rows that stays finite in float64
+    # while every |value| < sqrt(max / (4N)) (the 4: a difference can double a value). Beyond it the
+    # fit would return infinite length-scales or NaN without a word, so the data are refused.
+    limit = math.sqrt(np.finfo(np.float64).max / (4.0 * x.shape[0]))
+    for name, a in (("inputs", x), ("targets", y)):
+        big = np.abs(a.astype(np.float64)[m]).max(initial=0.0)
+        if big >= limit:
+            raise ValueError(f"{name} reach |value| = {big:.3g}: with {x.shape[0]} rows, squared differences and "
+                             f"sums overflow float64 beyond {limit:.3g}; rescale the {name}")
     return GPData(jnp.asarray(x, jnp.float64), jnp.asarray(y, jnp.float64), jnp.asarray(m))
 
 
