@@ -1,8 +1,13 @@
 """The ``pipps`` command line. Thin: parsing and printing only; the work is in library functions.
 
-Commands: ``rollout`` (true-system rollouts with a random policy), ``run`` (one learning
-experiment), ``sweep`` (a table's grid over seeds, parallel and resumable), ``table`` (success
-rates against the thesis) and ``plot`` (rerun recordings). ``pipps COMMAND --help`` lists options.
+Commands: ``run`` (one learning experiment), ``sweep`` (a table's grid over seeds, parallel and
+resumable), ``table`` (success rates against the thesis), ``plot`` (rerun recordings), ``study``
+(gradient studies on a stored policy: ``landscape``, ``variance``), ``bench`` (run time against
+gradient error) and ``rollout`` (true-system rollouts with a random policy).
+``pipps COMMAND --help`` lists the options.
+
+Errors are one line naming the problem (exit status 2 for bad input); ``--debug`` or
+``PIPPS_DEBUG=1`` shows the traceback of an unexpected one.
 """
 
 from __future__ import annotations
@@ -46,6 +51,33 @@ def _setting(text: str) -> tuple[str, str]:
     return key.strip(), value
 
 
+#: ``--set`` keys that have an option of their own (one way to give each setting; docs/experiments.md)
+RUN_OWN_OPTIONS = {"task": "--task", "method": "--method", "cost": "--cost", "k": "--k", "seed": "--seed",
+                   "num_particles": "--particles", "preset": "--preset", "protocol": "--preset"}
+SWEEP_OWN_OPTIONS = {"task": "--table", "method": "--methods", "k": "--k", "seed": "--seeds/--seed-start",
+                     "preset": "--preset", "protocol": "--preset"}
+
+
+class UsageError(ValueError):
+    """Bad command-line input; the message is printed as one line."""
+
+
+def _check_settings(settings: list[tuple[str, str]], own: dict[str, str], fixed_by_cells: set[str] = frozenset()):
+    """``--set`` pairs as a dict, refusing a key given twice, one that has its own option, or one the
+    sweep's table cells fix (cost, cost_scale)."""
+    out: dict[str, str] = {}
+    for key, value in settings:
+        name = key.replace("-", "_")
+        if name in own:
+            raise UsageError(f"--set {key}=…: {name} has its own option; use {own[name]} instead")
+        if name in fixed_by_cells:
+            raise UsageError(f"--set {key}=…: the table's cells fix {name}; pick cells with --table/--k/--methods")
+        if name in out:
+            raise UsageError(f"--set {key} is given twice ({out[name]!r} and {value!r})")
+        out[name] = value
+    return out
+
+
 def _add_experiment_options(p: argparse.ArgumentParser, *, single: bool) -> None:
     from pipps.experiments.config import METHODS, PRESET_NAMES, TASKS
 
@@ -63,8 +95,11 @@ def _add_experiment_options(p: argparse.ArgumentParser, *, single: bool) -> None
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from pipps.experiments.config import PRESET_NAMES
+
     parser = argparse.ArgumentParser(prog="pipps", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--debug", action="store_true", help="show the traceback of an unexpected error")
     sub = parser.add_subparsers(dest="command", required=True)
 
     ro = sub.add_parser("rollout", help="simulate a few episodes with a random policy and print the returns")
@@ -82,6 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--resume", action="store_true",
                      help="continue the unfinished result at --out (same configuration) from its last finished "
                           "trial instead of starting over")
+    run.add_argument("--overwrite", action="store_true",
+                     help="replace the file at --out even if it holds a complete result or another experiment "
+                          "(without it, an existing result is never replaced)")
 
     sw = sub.add_parser("sweep", help="run a table's cells over seeds in parallel workers (resumable)")
     sw.add_argument("--table", required=True, help="4.1, 4.2, 4.3, 4.4, q001 (Q × 0.01 cell) or del")
@@ -110,7 +148,11 @@ def build_parser() -> argparse.ArgumentParser:
     tb = sub.add_parser("table", help="success rates with 95%% Wilson intervals next to the thesis' tables")
     tb.add_argument("results", nargs="*", default=["runs"], help="result files or folders (default: runs)")
     tb.add_argument("--table", default=None, help="one table (default: every table with results)")
-    tb.add_argument("--preset", default=None, help="only results of this task preset (thesis or pilco)")
+    tb.add_argument("--preset", default="thesis", choices=PRESET_NAMES,
+                    help="count the results of this experiment preset (default thesis); results of another "
+                         "preset, or whose settings depart from it, are listed as not counted")
+    tb.add_argument("--custom", action="store_true",
+                    help="also count results whose settings depart from the preset (each table names them)")
     tb.add_argument("--curves", action="store_true", help="also print every result's evaluated return per trial")
 
     pl = sub.add_parser("plot", help="write a rerun recording (.rrd) of results; --png renders it")
@@ -179,60 +221,62 @@ def _progress_printer(stream=None):
         if done:
             left = state["trials"] - len(done)
             eta = f" ETA {max(left, 0) * (sum(done[-3:]) / len(done[-3:])) / 60:.1f} min"
-        head = f"\rtrial {state['trial'] + 1}/{state['trials']} [{elapsed / 60:5.1f} min{eta}]"
+        head = f"\rtrial {state['trial']} of 0-{state['trials'] - 1} [{elapsed / 60:5.1f} min{eta}]"
         if phase == "gp":
             out.write(f"{head} training GP on {event['points']} points".ljust(100))
         elif phase == "optimize":
             out.write(f"{head} policy step {event['step']}/{event['steps']} objective {event['objective']:.3f}".ljust(100))
         elif phase == "evaluated":
             done.append(event["seconds"])
-            out.write(f"{head} evaluated return {event['eval_return']:.3f} (upright {event['upright']:.0%})".ljust(100) + "\n")
+            name = event.get("criterion", "upright")
+            out.write(f"{head} evaluated return {event['eval_return']:.3f} ({name} {event.get(name, event['upright']):.0%})"
+                      .ljust(100) + "\n")
         out.flush()
 
     return show
 
 
 def _cmd_run(args) -> int:
-    from pathlib import Path
-
-    from pipps.experiments.config import ConfigError, resolve_config
+    from pipps.experiments.config import experiment_name, resolve_config
     from pipps.experiments.loop import run_experiment
-    from pipps.experiments.results import ResultError, partial_result, write_result
-    from pipps.experiments.sweep import experiment_name
+    from pipps.experiments.results import read_result, write_result
+    from pipps.experiments.storage import ResultLock, check_output_file, existing_result
 
+    if args.resume and args.overwrite:
+        raise UsageError("--resume and --overwrite contradict each other; give one")
     overrides = dict(method=args.method, k=args.k, seed=args.seed, cost=args.cost)
     if args.particles is not None:
         overrides["num_particles"] = args.particles
-    overrides.update(dict(args.settings))
-    try:
-        cfg = resolve_config(args.preset, args.task, **overrides)
-    except ConfigError as err:
-        print(f"pipps run: error: {err}", file=sys.stderr)
-        return 2
-    out = Path(args.out) if args.out else Path("runs") / f"{experiment_name(cfg)}.h5"
-    resume = None
-    if args.resume:
-        try:
-            resume = partial_result(out, cfg)
-        except ResultError as err:
-            print(f"pipps run: error: --resume: {err}", file=sys.stderr)
-            return 2
-        if resume is None:
-            print(f"pipps run: error: --resume: {out} holds no intact unfinished result to continue", file=sys.stderr)
-            return 2
-        if resume.status == "complete":
-            print(f"pipps run: error: --resume: {out} is already complete", file=sys.stderr)
-            return 2
-    if not args.quiet:
-        print(f"{cfg.task} / {cfg.table_name} / k={cfg.k:g} / seed {cfg.seed} ({args.preset} preset): "
-              f"{cfg.num_random} random + {cfg.num_learned} learned trials, P={cfg.num_particles}, "
-              f"{cfg.policy_evals} policy evaluations per trial -> {out}", file=sys.stderr)
-    if resume is not None and not args.quiet:
-        print(f"resuming at trial {len(resume.trials)} of {cfg.num_trials}", file=sys.stderr)
-    result = run_experiment(cfg, progress=None if args.quiet else _progress_printer(),
-                            on_trial=lambda r: write_result(out, r), resume=resume)
+    overrides.update(_check_settings(args.settings, RUN_OWN_OPTIONS))
+    cfg = resolve_config(args.preset, args.task, **overrides)
+    out = check_output_file(args.out or f"runs/{experiment_name(cfg)}.h5")
+    with ResultLock(out):  # held for the whole run: no other process writes this file meanwhile
+        found = existing_result(out, cfg)
+        resume = None
+        if args.resume:
+            if found.kind != "unfinished" or not found.trials:
+                why = {"missing": "there is no file", "complete": "it is already complete",
+                       "other": f"it holds another experiment ({found.detail})",
+                       "damaged": found.detail}.get(found.kind, "it holds no finished trial")
+                raise UsageError(f"--resume: nothing to continue at {out}: {why}")
+            resume = read_result(out, verify=False)
+        elif found.kind != "missing" and not args.overwrite:
+            why = {"complete": "a complete result of this experiment",
+                   "unfinished": f"an unfinished run of this experiment ({found.trials} of {cfg.num_trials} "
+                                 "trials); --resume continues it",
+                   "other": f"another experiment ({found.detail})",
+                   "damaged": f"a file that is not an intact pipps result ({found.detail})"}[found.kind]
+            raise UsageError(f"{out} already holds {why}; --overwrite replaces it, or pick another --out")
+        if not args.quiet:
+            print(f"{cfg.task} / {cfg.table_name} / k={cfg.k:g} / seed {cfg.seed} ({cfg.protocol} preset): "
+                  f"{cfg.num_random} random + {cfg.num_learned} learned trials (trials 0-{cfg.num_trials - 1}), "
+                  f"P={cfg.num_particles}, {cfg.policy_evals} policy evaluations per trial -> {out}", file=sys.stderr)
+            if resume is not None:
+                print(f"resuming at trial {len(resume.trials)} (trials 0-{cfg.num_trials - 1})", file=sys.stderr)
+        result = run_experiment(cfg, progress=None if args.quiet else _progress_printer(),
+                                on_trial=lambda r: write_result(out, r), resume=resume)
     returns = " ".join(f"{t.eval_return:.2f}" for t in result.trials)
-    print(f"evaluated return per trial: {returns}")
+    print(f"evaluated return per trial (trial 0 first): {returns}")
     verdict = "success" if result.success else "failure"
     print(f"final evaluated return {result.final_return:.3f}: {verdict} "
           f"({result.wall_seconds / 60:.1f} min); results in {out}")
@@ -240,7 +284,6 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_sweep(args) -> int:
-    from pipps.experiments.config import ConfigError
     from pipps.experiments.sweep import import_ray, plan, run_sweep
     from pipps.experiments.tables import table_configs
 
@@ -259,22 +302,30 @@ def _cmd_sweep(args) -> int:
         except ImportError as err:
             print(f"pipps sweep: error: --backend ray: {err}", file=sys.stderr)
             return 2
+    from pipps.experiments.storage import check_output_folder, claim_sweep_folder
+    from pipps.experiments.tables import get_table
+
     try:
-        methods = args.methods.split(",") if args.methods else None
-        ks = [float(k) for k in args.ks.split(",")] if args.ks else None
-        seeds = range(args.seed_start, args.seed_start + args.seeds)
-        configs = table_configs(args.table, seeds, args.preset, methods=methods, ks=ks, overrides=dict(args.settings))
-    except (ConfigError, ValueError) as err:
-        print(f"pipps sweep: error: {err}", file=sys.stderr)
-        return 2
-    if not configs:
-        print("pipps sweep: error: no cell of the table matches --methods/--k", file=sys.stderr)
-        return 2
-    try:
-        todo, done, resumes = plan(configs, args.out)
+        table = get_table(args.table)
     except ValueError as err:
-        print(f"pipps sweep: error: {err}", file=sys.stderr)
-        return 2
+        raise UsageError(str(err)) from None
+    fixed = {name for cell in table.cells for name, _ in cell.values}
+    overrides = _check_settings(args.settings, SWEEP_OWN_OPTIONS, fixed)
+    methods = args.methods.split(",") if args.methods else None
+    try:
+        ks = [float(k) for k in args.ks.split(",")] if args.ks else None
+    except ValueError:
+        raise UsageError(f"--k: expected comma-separated numbers, got {args.ks!r}") from None
+    seeds = range(args.seed_start, args.seed_start + args.seeds)
+    try:
+        configs = table_configs(table, seeds, args.preset, methods=methods, ks=ks, overrides=overrides)
+    except ValueError as err:  # unknown methods; ConfigError (a ValueError) names a bad --set value
+        raise UsageError(str(err)) from None
+    if not configs:
+        raise UsageError("no cell of the table matches --methods/--k")
+    check_output_folder(args.out, create=not args.dry_run)
+    claim_sweep_folder(args.out, configs, write=False)  # the real sweep writes it (run_sweep)
+    todo, done, resumes = plan(configs, args.out)
     print(f"{len(configs)} experiments: {len(done)} already complete, {len(todo)} to run "
           f"({sum(1 for n in resumes if n)} resumed from their last finished trial) with {args.jobs} job(s) "
           f"({args.backend}) -> {args.out}/", file=sys.stderr)
@@ -289,6 +340,8 @@ def _cmd_sweep(args) -> int:
 
     report = run_sweep(configs, args.out, jobs=args.jobs, on_done=on_done, backend=args.backend,
                        address=args.address, batched=args.batched, batching=args.batching)
+    for path, note in report.notes.items():
+        print(f"  note: {path}: {note}", file=sys.stderr)
     print(f"ran {len(report.ran)}, skipped {len(report.skipped)} complete, failed {len(report.failed)} "
           f"in {report.seconds / 60:.1f} min")
     return 1 if report.failed else 0
@@ -311,39 +364,55 @@ def _result_paths(items):
 
 def _cmd_table(args) -> int:
     from pipps.experiments.results import ResultError, read_summary
-    from pipps.experiments.tables import TABLES, collect, get_table, render_curves, render_table
+    from pipps.experiments.tables import TABLES, collect, counts, get_table, judge, render_curves, render_table
 
+    paths = _result_paths(args.results)
     try:
-        paths = _result_paths(args.results)
         tables = [get_table(args.table)] if args.table else list(TABLES.values())
-    except (FileNotFoundError, ValueError) as err:
-        print(f"pipps table: error: {err}", file=sys.stderr)
-        return 2
+    except ValueError as err:
+        raise UsageError(str(err)) from None
     summaries, skipped = [], []
     for p in paths:
         try:
             summaries.append(read_summary(p))
         except ResultError as err:
             skipped.append(str(err))
+    counted = judge([s for s in summaries if not counts(s["config"], args.preset, args.custom)])
+    resimulated = [s for s in counted if s.get("resimulated")]
     printed = 0
     for t in tables:
-        cells = collect(t, summaries, preset=args.preset)
+        cells = collect(t, counted, preset=args.preset, custom=args.custom)
         if any(c.n for c in cells) or args.table:
             print(render_table(t, cells))
             print()
             printed += 1
     if args.curves and summaries:
         print("Evaluated return per trial (trial 0 is the random trial):\n")
-        print(render_curves(summaries))
+        print(render_curves(counted))
         print()
-    print(f"{len(summaries)} complete results read; {len(skipped)} incomplete or corrupt files not counted")
+    print(f"{len(counted)} complete results of the {args.preset} preset counted; "
+          f"{len(summaries) - len(counted)} complete results of other settings and {len(skipped)} incomplete or "
+          "corrupt files not counted")
+    for s in summaries:
+        why = counts(s["config"], args.preset, args.custom)
+        if why:
+            print(f"  not counted: {s['path']}: {why}")
     for s in skipped:
         print(f"  not counted: {s}")
-    return 0 if printed else 1
+    if resimulated:
+        worst = max(s["resim_error"] for s in resimulated)
+        print(f"{len(resimulated)} cart-pole files predate the stored physical criterion: their final trial's "
+              f"evaluation rollouts were re-simulated (stored policy and keys; largest return difference {worst:.1e})")
+    if not printed:
+        where = ", ".join(map(str, args.results))
+        print(f"pipps table: no complete result of the {args.preset} preset in {where}"
+              + (f" for table {args.table}" if args.table else ""), file=sys.stderr)
+        return 1
+    return 0
 
 
 def _cmd_plot(args) -> int:
-    from pipps.experiments.plot import record, render_png
+    from pipps.experiments.plot import check_viewer, record, render_png
     from pipps.experiments.results import ResultError, read_result
 
     try:
@@ -360,6 +429,8 @@ def _cmd_plot(args) -> int:
     if not results:
         print("pipps plot: error: no complete results to plot", file=sys.stderr)
         return 2
+    if args.png:
+        check_viewer()  # before the recording is written: a missing viewer is named, not a traceback
     record(results, args.out)
     print(f"wrote {args.out} ({len(results)} experiments)")
     if args.png:
@@ -457,7 +528,34 @@ def _cmd_bench(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import os
+
     args = build_parser().parse_args(argv)
+    name = f"pipps {args.command}" + (f" {args.study}" if args.command == "study" else "")
+    try:
+        return _dispatch(args)
+    except KeyboardInterrupt:
+        print(f"{name}: interrupted; result files keep every finished trial (resume with --resume or the same sweep)",
+              file=sys.stderr)
+        return 130
+    except Exception as err:
+        from pipps.experiments.config import ConfigError
+        from pipps.experiments.results import ResultError
+        from pipps.experiments.storage import OutputError
+
+        if args.debug or os.environ.get("PIPPS_DEBUG"):
+            raise
+        expected = isinstance(err, (UsageError, ConfigError, OutputError, ResultError, FileNotFoundError))
+        text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        if expected:
+            print(f"{name}: error: {text}", file=sys.stderr)
+            return 2
+        print(f"{name}: error: {type(err).__name__}: {text} (pipps --debug {args.command} … or PIPPS_DEBUG=1 "
+              "shows the traceback)", file=sys.stderr)
+        return 1
+
+
+def _dispatch(args) -> int:
     if args.command == "rollout":
         from pipps.demo import random_policy_rollouts
 

@@ -50,6 +50,7 @@ from pipps.experiments.loop import (
     Progress,
     _check_finite_data,
     _trial_from,
+    balance_settings,
     evaluate_rollouts,
     gp_config,
     init_policy,
@@ -104,9 +105,10 @@ class _BatchedPrograms:
         store = cfg.store_particles
 
         self.trial_random = jax.jit(smap(lambda k: rollout(task, k, None)))
-        self.evaluate_random = jax.jit(smap(lambda k: evaluate_rollouts(task, k, None)))
+        balance = balance_settings(cfg)
+        self.evaluate_random = jax.jit(smap(lambda k: evaluate_rollouts(task, k, None, balance)))
         self.trial = jax.jit(smap(lambda k, p: rollout(task, k, p)))
-        self.evaluate = jax.jit(smap(lambda k, p: evaluate_rollouts(task, k, p)))
+        self.evaluate = jax.jit(smap(lambda k, p: evaluate_rollouts(task, k, p, balance)))
         self.init = jax.jit(smap(lambda k, p, m: init_policy_opt_state(
             k, p, m, task=task, config=rcfg, estimator=est, optimizer=opt)))
         self.run = jax.jit(lambda k, s, m, n: smap(lambda kk, ss, mm: run(kk, ss, mm, num_steps=n))(k, s, m),

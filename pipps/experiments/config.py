@@ -23,6 +23,8 @@ Presets:
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
 import typing
 from typing import Any
@@ -66,7 +68,8 @@ class ExperimentConfig:
 
     # what is learned
     task: str = "cartpole_swingup"
-    preset: str = "thesis"  # the task preset (``thesis``/``pilco``; ``quick`` uses the thesis task)
+    preset: str = "thesis"  # the task preset: physics, noise, cost (``thesis``/``pilco``; ``quick`` uses the thesis task)
+    protocol: str = "thesis"  # the experiment preset it was built from (``thesis``/``pilco``/``quick``; module doc)
     cost: str | None = None  # angle | tip | unicycle; None: the task preset's default
     cost_scale: float = 1.0  # Q multiplier of the Angle Cost (the thesis' "Q × 0.01" cell)
     k: float = 1.0  # observation-noise variance multiplier
@@ -77,8 +80,15 @@ class ExperimentConfig:
     num_learned: int = 15  # learned trials
     horizon: int | None = None  # None: the task preset's horizon
     eval_rollouts: int = 30  # evaluation rollouts per trial (reporting only)
-    success_threshold: float = 15.0  # cart-pole: final evaluated return below this
+    success_threshold: float = 15.0  # cart-pole: the thesis' return threshold (reported beside the physical verdict)
     upright_fraction: float = 0.95  # unicycle: fraction of evaluation rollouts that must stay upright
+    # cart-pole physical success (pipps.experiments.criteria): in the last balance_steps states the pole
+    # within balance_angle rad of upright and the cart within balance_position m of the centre, in at
+    # least balanced_fraction of the final trial's evaluation rollouts
+    balance_steps: int = 10
+    balance_angle: float = 0.3
+    balance_position: float = 0.5
+    balanced_fraction: float = 0.5
     # the policy
     policy: str = "rbf"  # rbf (thesis), pilco_rbf, linear
     num_basis: int = 50
@@ -149,6 +159,8 @@ def validate(c: ExperimentConfig) -> None:
 
     _need(c.task in TASKS, "task", f"unknown task {c.task!r}; choose one of {', '.join(TASKS)}")
     _need(c.preset in PRESETS, "preset", f"unknown task preset {c.preset!r}; choose one of {', '.join(PRESETS)}")
+    _need(c.protocol in PRESET_NAMES, "protocol",
+          f"unknown experiment preset {c.protocol!r}; choose one of {', '.join(PRESET_NAMES)}")
     _need(c.method in METHODS, "method", f"unknown method {c.method!r}; choose one of {', '.join(METHODS)}")
     if c.cost is not None:
         _need(c.cost in TASK_COSTS[c.task], "cost",
@@ -171,6 +183,13 @@ def validate(c: ExperimentConfig) -> None:
     _need(finite(c.success_threshold), "success_threshold", f"must be finite, got {c.success_threshold!r}")
     _need(finite(c.upright_fraction) and 0 < c.upright_fraction <= 1, "upright_fraction",
           f"must lie in (0, 1], got {c.upright_fraction!r}")
+    _need(finite(c.balanced_fraction) and 0 < c.balanced_fraction <= 1, "balanced_fraction",
+          f"must lie in (0, 1], got {c.balanced_fraction!r}")
+    _need(isinstance(c.balance_steps, int) and not isinstance(c.balance_steps, bool) and c.balance_steps >= 1,
+          "balance_steps", f"must be an integer >= 1, got {c.balance_steps!r}")
+    for name in ("balance_angle", "balance_position"):
+        v = getattr(c, name)
+        _need(finite(v) and v > 0, name, f"must be > 0, got {v!r}")
     _need(c.policy in ("rbf", "pilco_rbf", "linear"), "policy", f"choose rbf, pilco_rbf or linear, got {c.policy!r}")
     _need(c.policy_init in ("start", "uniform"), "policy_init", f"choose start or uniform, got {c.policy_init!r}")
     _need(c.policy_init != "uniform" or c.task != "unicycle", "policy_init", "uniform centres are a cart-pole setting")
@@ -203,7 +222,7 @@ def preset_values(preset: str, task: str) -> dict[str, Any]:
     if task not in TASKS:
         raise ConfigError(f"task: unknown task {task!r}; choose one of {', '.join(TASKS)}")
     unicycle = task == "unicycle"
-    v: dict[str, Any] = dict(task=task)
+    v: dict[str, Any] = dict(task=task, protocol=preset)
     if preset in ("thesis", "quick"):
         v.update(preset="thesis", estimator_choices="thesis")
         if unicycle:
@@ -308,10 +327,85 @@ def from_dict(d: dict[str, Any]) -> ExperimentConfig:
         if isinstance(v, list):
             v = tuple(v)
         values[key] = v
-    return ExperimentConfig(**values)
+    if "protocol" in values:
+        return ExperimentConfig(**values)
+    return _legacy_protocol(ExperimentConfig(**values, protocol=values.get("preset", "thesis")))
+
+
+def _legacy_protocol(cfg: ExperimentConfig) -> ExperimentConfig:
+    """A configuration stored before ``protocol`` existed, with the experiment preset it was built
+    from: the one whose protocol it equals (``quick`` runs were stored with ``preset="thesis"``),
+    else its task preset (then it departs from that protocol, see :func:`departures`)."""
+    for protocol in PRESET_NAMES:
+        candidate = dataclasses.replace(cfg, protocol=protocol)
+        try:
+            if not departures(candidate):
+                return candidate
+        except ConfigError:
+            continue
+    return cfg
+
+
+#: The settings that say which table cell and seed an experiment is; every other setting is the protocol's.
+IDENTITY = ("task", "protocol", "method", "cost", "cost_scale", "k", "seed")
+
+
+def canonical(cfg: ExperimentConfig) -> dict[str, Any]:
+    """The configuration as a dict with the default cost named: ``cost=None`` and ``cost="angle"``
+    are the same experiment on the cart-pole's thesis preset."""
+    from pipps.tasks.presets import DEFAULT_COST
+
+    d = cfg.to_dict()
+    if d["cost"] is None:
+        d["cost"] = DEFAULT_COST[(cfg.task, cfg.preset)]
+    return d
+
+
+def same_experiment(a: ExperimentConfig, b: ExperimentConfig) -> bool:
+    """Whether two configurations describe the same experiment (equal up to naming the default cost)."""
+    return canonical(a) == canonical(b)
+
+
+def config_hash(cfg: ExperimentConfig) -> str:
+    """SHA-256 of the canonical configuration: a result's identity (stored as ``config_hash``)."""
+    text = json.dumps(canonical(cfg), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def protocol_config(cfg: ExperimentConfig) -> ExperimentConfig:
+    """What ``cfg``'s experiment preset gives for its table cell and seed, with no other override."""
+    ident = {k: getattr(cfg, k) for k in IDENTITY if k not in ("task", "protocol")}
+    return resolve_config(cfg.protocol, cfg.task, **ident)
+
+
+def departures(cfg: ExperimentConfig) -> dict[str, tuple[Any, Any]]:
+    """The settings in which ``cfg`` departs from its protocol: ``{name: (value, protocol's value)}``."""
+    a, b = canonical(cfg), canonical(protocol_config(cfg))
+    return {k: (a[k], b[k]) for k in a if a[k] != b[k]}
+
+
+def experiment_name(cfg: ExperimentConfig) -> str:
+    """The result file's name (without ``.h5``): ``task_cost_kK_method_protocol_sSEED`` for an
+    experiment that follows its protocol, with ``_cHASH`` (the first 8 hex digits of
+    :func:`config_hash`) appended when any other setting departs from it, so that two different
+    configurations never share a name."""
+    from pipps.tasks.presets import TASK_COSTS
+
+    # the cost's name (the default one named, so that cost=None and cost="angle" share a file);
+    # "default" for a task with a single cost
+    cost = canonical(cfg)["cost"] if len(TASK_COSTS[cfg.task]) > 1 else "default"
+    if cfg.cost_scale != 1.0:
+        cost += f"x{cfg.cost_scale:g}"
+    name = f"{cfg.task}_{cost}_k{cfg.k:g}_{cfg.method}_{cfg.protocol}_s{cfg.seed}"
+    try:
+        custom = bool(departures(cfg))
+    except ConfigError:  # the protocol cannot express this cell at all
+        custom = True
+    return f"{name}_c{config_hash(cfg)[:8]}" if custom else name
 
 
 def config_difference(stored: ExperimentConfig, asked: ExperimentConfig) -> str:
-    """The settings two configurations disagree on, ``"name: a stored, b asked; ..."``."""
-    a, b = stored.to_dict(), asked.to_dict()
+    """The settings two configurations disagree on, ``"name: a stored, b asked; ..."`` (the
+    default cost and its name count as equal)."""
+    a, b = canonical(stored), canonical(asked)
     return "; ".join(f"{k}: {a[k]!r} stored, {b[k]!r} asked" for k in a if a[k] != b[k])

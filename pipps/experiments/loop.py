@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from pipps.experiments.config import QUICK_CENTRE_HIGH, QUICK_CENTRE_LOW, ExperimentConfig, config_difference
+from pipps.experiments.config import QUICK_CENTRE_HIGH, QUICK_CENTRE_LOW, ExperimentConfig, config_difference, same_experiment
 from pipps.experiments.methods import particle_method
 from pipps.gp import FitState, GPConfig, GPHyper, fit, make_data, pad_to_capacity
 from pipps.policies import init_linear_policy, init_pilco_rbf_policy, init_rbf_policy, init_rbf_policy_uniform
@@ -68,6 +68,9 @@ class TrialResult:
     opt_trace: dict[str, np.ndarray] | None = None  # per policy step (or QN line search) values
     diagnostics: dict[str, np.ndarray] | None = None  # per time step k_LR, σ²_RP, σ²_LR (means over steps)
     predicted: dict[str, np.ndarray] | None = None  # particles (T+1, S_p, D) or PILCO means/covs
+    # (R,) bool: the physical criterion per evaluation rollout (cart-pole: balanced at the end,
+    # pipps.experiments.criteria; unicycle: upright); None in files written before it was stored
+    eval_balanced: np.ndarray | None = None
 
     @property
     def eval_return(self) -> float:
@@ -76,6 +79,11 @@ class TrialResult:
     @property
     def upright_fraction(self) -> float:
         return float(np.mean(self.eval_upright))
+
+    @property
+    def balanced_fraction(self) -> float:
+        """Fraction of evaluation rollouts meeting the physical criterion (NaN where not stored)."""
+        return float(np.mean(self.eval_balanced)) if self.eval_balanced is not None else math.nan
 
 
 @dataclasses.dataclass
@@ -97,10 +105,19 @@ class ExperimentResult:
 
 
 def judge_success(cfg: ExperimentConfig, trial: TrialResult) -> bool:
-    """experiments.md "Success": cart-pole, the final evaluated return is below the threshold;
-    unicycle, at least ``upright_fraction`` of the evaluation rollouts stay upright for the episode."""
+    """The physical verdict (pipps.experiments.criteria): cart-pole, at least ``balanced_fraction``
+    of the evaluation rollouts end balanced; unicycle, at least ``upright_fraction`` stay upright
+    for the episode. A cart-pole trial from a file written before the criterion was stored has no
+    per-rollout flags: it falls back to the return verdict (``pipps table`` re-simulates those)."""
     if cfg.task == "unicycle":
         return trial.upright_fraction >= cfg.upright_fraction
+    if trial.eval_balanced is None:
+        return judge_return(cfg, trial)
+    return trial.balanced_fraction >= cfg.balanced_fraction
+
+
+def judge_return(cfg: ExperimentConfig, trial: TrialResult) -> bool:
+    """The thesis' return verdict: the final evaluated return below ``success_threshold`` (cart-pole)."""
     return trial.eval_return < cfg.success_threshold
 
 
@@ -155,12 +172,23 @@ def gp_config(cfg: ExperimentConfig) -> GPConfig:
                     fitc_iters=cfg.fitc_iters, fitc_first_iters=cfg.fitc_first_iters)
 
 
-def evaluate_rollouts(task: Task, keys, policy):
-    """(returns, upright) of one true-system rollout per key with ``policy`` (None: random actions);
-    fallen steps are charged cost 1. Pure."""
+def balance_settings(cfg: ExperimentConfig) -> tuple[int, float, float]:
+    """The cart-pole's physical criterion of ``cfg`` as :func:`pipps.experiments.criteria.balanced` takes it."""
+    return cfg.balance_steps, cfg.balance_angle, cfg.balance_position
+
+
+def evaluate_rollouts(task: Task, keys, policy, balance: tuple[int, float, float] | None = None):
+    """(returns, upright, balanced) of one true-system rollout per key with ``policy`` (None: random
+    actions); fallen steps are charged cost 1. ``balanced``: the cart-pole's physical criterion
+    with ``balance = (steps, angle, position)`` (:mod:`pipps.experiments.criteria`); elsewhere, or
+    without ``balance``, the same as ``upright``. Pure."""
+    from pipps.experiments.criteria import balanced, is_cartpole
+
     trajs = jax.vmap(lambda k: rollout(task, k, policy))(keys)
     fallen_steps = task.horizon - jnp.sum(trajs.valid, axis=-1)
-    return trajs.total_cost + fallen_steps, jnp.all(trajs.valid, axis=-1)
+    upright = jnp.all(trajs.valid, axis=-1)
+    ok = balanced(trajs.states, *balance) if balance is not None and is_cartpole(task.name) else upright
+    return trajs.total_cost + fallen_steps, upright, ok
 
 
 class _Programs:
@@ -168,8 +196,9 @@ class _Programs:
 
     def __init__(self, cfg: ExperimentConfig, task: Task):
         self.cfg, self.task = cfg, task
-        self.evaluate = jax.jit(lambda keys, policy: evaluate_rollouts(task, keys, policy))
-        self.evaluate_random = jax.jit(lambda keys: evaluate_rollouts(task, keys, None))
+        balance = balance_settings(cfg)
+        self.evaluate = jax.jit(lambda keys, policy: evaluate_rollouts(task, keys, policy, balance))
+        self.evaluate_random = jax.jit(lambda keys: evaluate_rollouts(task, keys, None, balance))
         self.trial = jax.jit(lambda key, policy: rollout(task, key, policy))
         self.trial_random = jax.jit(lambda key: rollout(task, key, None))
         self.optimizer = _make_optimizer(cfg, task)
@@ -307,10 +336,10 @@ def _pilco_optimizer(cfg: ExperimentConfig, task: Task):
 
 def _trial_from(index, kind, traj, evals, policy_flat, timings) -> TrialResult:
     traj = jax.device_get(traj)
-    returns, upright = (np.asarray(a) for a in jax.device_get(evals))
+    returns, upright, ok = (np.asarray(a) for a in jax.device_get(evals))
     return TrialResult(index, kind, np.asarray(traj.states), np.asarray(traj.observations),
                        np.asarray(traj.actions), np.asarray(traj.costs), np.asarray(traj.valid),
-                       returns, upright, policy_flat, timings)
+                       returns, upright, policy_flat, timings, eval_balanced=ok)
 
 
 def record_gp(trial: TrialResult, post, info) -> None:
@@ -336,7 +365,7 @@ def _check_finite_data(inputs: np.ndarray, targets: np.ndarray, trial: int) -> N
 
 
 def _check_resumable(cfg: ExperimentConfig, partial: ExperimentResult) -> None:
-    if partial.config != cfg:
+    if not same_experiment(partial.config, cfg):
         raise ValueError(f"resume: the partial result is of another configuration "
                          f"({config_difference(partial.config, cfg)})")
     if [t.index for t in partial.trials] != list(range(len(partial.trials))):
@@ -433,7 +462,8 @@ def run_experiment(
             result.trials.append(trial)
             result.wall_seconds = elapsed()
             progress(dict(phase="evaluated", trial=i, trials=cfg.num_trials, eval_return=trial.eval_return,
-                          upright=trial.upright_fraction, seconds=timings["total"]))
+                          upright=trial.upright_fraction, balanced=trial.balanced_fraction,
+                          criterion="balanced" if cfg.task != "unicycle" else "upright", seconds=timings["total"]))
             on_trial(result)
     except BaseException as err:  # keep what finished, say what broke, re-raise
         result.status, result.error = "failed", f"{type(err).__name__}: {err}"

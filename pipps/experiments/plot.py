@@ -162,13 +162,20 @@ def _log_diagnostics(rec, name: str, r: ExperimentResult, color) -> None:
                     rec.log(f"diagnostics/log10_variance/{name}/{part}", rr.Scalars([np.log10(v)]))
 
 
-def render_png(rrd: str | Path, png: str | Path, size: str = "1600x1000", timeout: float = 120.0) -> Path:
-    """Render ``rrd`` to ``png`` with ``xvfb-run rerun REC --screenshot-to PNG --window-size WxH``."""
+def check_viewer() -> tuple[str, str]:
+    """``(xvfb-run, rerun)`` on PATH, or a :class:`FileNotFoundError` that says what to install."""
     xvfb = shutil.which("xvfb-run")
     viewer = shutil.which("rerun")
     if xvfb is None or viewer is None:
-        raise RuntimeError("--png needs xvfb-run and the rerun viewer on PATH "
-                           "(Debian: apt-get install xvfb mesa-vulkan-drivers)")
+        missing = " and ".join(n for n, p in (("xvfb-run", xvfb), ("the rerun viewer", viewer)) if p is None)
+        raise FileNotFoundError(f"--png needs {missing} on PATH (Debian: apt-get install xvfb mesa-vulkan-drivers; "
+                                "the viewer comes with rerun-sdk); the .rrd recording needs neither")
+    return xvfb, viewer
+
+
+def render_png(rrd: str | Path, png: str | Path, size: str = "1600x1000", timeout: float = 120.0) -> Path:
+    """Render ``rrd`` to ``png`` with ``xvfb-run rerun REC --screenshot-to PNG --window-size WxH``."""
+    xvfb, viewer = check_viewer()
     cmd = [xvfb, "-a", "-s", f"-screen 0 {size.replace('x', 'x')}x24", viewer, str(rrd),
            "--screenshot-to", str(png), "--window-size", size]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)

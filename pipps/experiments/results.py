@@ -26,6 +26,7 @@ reported as corrupt, not read.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -37,8 +38,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from pipps.experiments.config import ExperimentConfig, config_difference, from_dict
-from pipps.experiments.loop import ExperimentResult, TrialResult
+from pipps.experiments.config import ExperimentConfig, config_difference, config_hash, from_dict, same_experiment
+from pipps.experiments.loop import ExperimentResult, TrialResult, judge_return
 
 SCHEMA_VERSION = 1
 _TRIAL_ARRAYS = ("states", "observations", "actions", "costs", "valid", "eval_returns", "eval_upright", "policy")
@@ -61,9 +62,30 @@ def versions() -> dict[str, str]:
         device = str(jax.devices()[0].device_kind)
     except Exception:  # pragma: no cover - no backend
         device = "unknown"
-    return {"pipps": pipps.__version__, "jax": jax.__version__, "jaxlib": jaxlib.__version__,
+    return {"pipps": pipps.__version__, "code": code_version(), "jax": jax.__version__, "jaxlib": jaxlib.__version__,
             "numpy": np.__version__, "h5py": _h5py.__version__, "python": sys.version.split()[0],
             "platform": platform.platform(), "device": device}
+
+
+@functools.cache
+def code_version() -> str:
+    """The git commit of the pipps source that is running, ``+dirty`` when ``pipps/`` differs from
+    it, or ``unknown`` outside a git checkout (an installed wheel): stored in every result file."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[2]
+    try:
+        top = subprocess.run(["git", "-C", str(root), "rev-parse", "--show-toplevel"], capture_output=True,
+                             text=True, timeout=10)
+        if top.returncode != 0 or Path(top.stdout.strip()).resolve() != root:
+            return "unknown"  # not the checkout pipps runs from (e.g. a wheel inside some other repository)
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=10)
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "pipps"],
+                               capture_output=True, text=True, timeout=10)
+        return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
 
 
 def _checksum(config_json: str, trials) -> str:
@@ -82,8 +104,9 @@ def _write_dict(group: h5py.Group, d: dict[str, Any]) -> None:
     for name, value in d.items():
         if isinstance(value, str):
             group.attrs[name] = value
-        elif isinstance(value, (bool, int, float, np.bool_)) and np.ndim(value) == 0:
-            group.attrs[name] = value
+        elif isinstance(value, (bool, int, float, np.generic)) and np.ndim(value) == 0:
+            # scalars are attributes whether they come from the loop (Python) or a resumed file (numpy)
+            group.attrs[name] = value.item() if isinstance(value, np.generic) else value
         elif value is not None:
             group.create_dataset(name, data=np.asarray(value), compression="gzip" if np.size(value) > 256 else None)
 
@@ -94,6 +117,8 @@ def _write_trial(group: h5py.Group, t: TrialResult) -> None:
     group.attrs["upright_fraction"] = t.upright_fraction
     for name in _TRIAL_ARRAYS:
         group.create_dataset(name, data=np.asarray(getattr(t, name)))
+    if t.eval_balanced is not None:
+        group.create_dataset("eval_balanced", data=np.asarray(t.eval_balanced, dtype=bool))
     group.create_group("timings").attrs.update({k: float(v) for k, v in t.timings.items()})
     if t.gp_hyper is not None:
         gp = group.create_group("gp")
@@ -117,11 +142,14 @@ def write_result(path: str | os.PathLike, result: ExperimentResult) -> None:
             f.attrs["status"] = result.status
             f.attrs["error"] = result.error
             f.attrs["config_json"] = cfg_json
+            f.attrs["config_hash"] = config_hash(result.config)
             f.attrs["wall_seconds"] = float(result.wall_seconds)
             f.attrs["resumed_at"] = np.asarray(result.resumed_at, dtype=np.int64)
             f.attrs["num_trials_done"] = len(result.trials)
             f.attrs["final_return"] = float(result.final_return)
             f.attrs["success"] = bool(result.success)
+            f.attrs["return_success"] = bool(result.status == "complete" and result.trials
+                                             and judge_return(result.config, result.trials[-1]))
             f.attrs["checksum"] = _checksum(cfg_json, [dict(eval_returns=t.eval_returns, policy=t.policy)
                                                        for t in result.trials])
             f.create_group("config").attrs.update(
@@ -130,6 +158,7 @@ def write_result(path: str | os.PathLike, result: ExperimentResult) -> None:
             f.create_group("versions").attrs.update(versions())
             f.create_dataset("eval_return", data=np.array([t.eval_return for t in result.trials], dtype=float))
             f.create_dataset("upright_fraction", data=np.array([t.upright_fraction for t in result.trials], dtype=float))
+            f.create_dataset("balanced_fraction", data=np.array([t.balanced_fraction for t in result.trials], dtype=float))
             trials = f.create_group("trials")
             for t in result.trials:
                 _write_trial(trials.create_group(f"{t.index:03d}"), t)
@@ -213,7 +242,7 @@ def partial_result(path: str | os.PathLike, cfg: ExperimentConfig) -> Experiment
         status, stored, n = verify_result(path)
     except ResultError:
         return None
-    if stored != cfg:
+    if not same_experiment(stored, cfg):
         raise ResultError(f"{path}: holds another configuration ({config_difference(stored, cfg)}); "
                           "use another output folder or remove the file")
     if n == 0 or n > cfg.num_trials:
@@ -246,7 +275,8 @@ def read_result(path: str | os.PathLike, *, verify: bool = True) -> ExperimentRe
         for n in sorted(f["trials"].keys()):
             g = f["trials"][n]
             arrays = {a: g[a][()] for a in _TRIAL_ARRAYS}
-            t = TrialResult(int(n), str(g.attrs["kind"]), timings=dict(g["timings"].attrs), **arrays)
+            t = TrialResult(int(n), str(g.attrs["kind"]), timings=dict(g["timings"].attrs), **arrays,
+                            eval_balanced=g["eval_balanced"][()] if "eval_balanced" in g else None)
             if "gp" in g:
                 gp = _read_group(g["gp"])
                 t.gp_hyper = {k: gp.pop(k) for k in ("log_lengthscale", "log_signal", "log_noise")}
@@ -263,6 +293,12 @@ def read_summary(path: str | os.PathLike) -> dict[str, Any]:
     """The few numbers the tables need, from a verified file: config, success, final return, wall time."""
     check_result(path)
     with h5py.File(path, "r") as f:
+        last = f["trials"][sorted(f["trials"].keys())[-1]]
         return {"config": from_dict(json.loads(f.attrs["config_json"])), "success": bool(f.attrs["success"]),
                 "final_return": float(f.attrs["final_return"]), "wall_seconds": float(f.attrs["wall_seconds"]),
-                "eval_return": f["eval_return"][()], "upright_fraction": f["upright_fraction"][()], "path": str(path)}
+                "eval_return": f["eval_return"][()], "upright_fraction": f["upright_fraction"][()], "path": str(path),
+                # absent in files written before the physical criterion was stored (NaN per trial)
+                "balanced_fraction": (f["balanced_fraction"][()] if "balanced_fraction" in f
+                                      else np.full(len(f["eval_return"]), np.nan)),
+                "final_eval_returns": last["eval_returns"][()],
+                "final_eval_balanced": last["eval_balanced"][()] if "eval_balanced" in last else None}

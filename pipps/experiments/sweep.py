@@ -32,26 +32,19 @@ import concurrent.futures as cf
 import dataclasses
 import multiprocessing as mp
 import os
+import sys
 import tempfile
 import time
 import traceback
 from pathlib import Path
 from typing import Callable, Iterable
 
-from pipps.experiments.config import ExperimentConfig
+from pipps.experiments.config import ExperimentConfig, experiment_name  # noqa: F401  (re-exported)
 
 
 def worker_pool(jobs: int) -> cf.ProcessPoolExecutor:
     """``jobs`` spawn workers, each pinned to a CPU no other pinned pipps process holds (module doc)."""
     return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=_pin_to_free_cpu)
-
-
-def experiment_name(cfg: ExperimentConfig) -> str:
-    """A file name that identifies the table cell and seed: ``task_cost_k_method_preset_sSEED``."""
-    cost = cfg.cost or "default"
-    if cfg.cost_scale != 1.0:
-        cost += f"x{cfg.cost_scale:g}"
-    return f"{cfg.task}_{cost}_k{cfg.k:g}_{cfg.method}_{cfg.preset}_s{cfg.seed}"
 
 
 @dataclasses.dataclass
@@ -60,18 +53,38 @@ class SweepReport:
     skipped: list[str]
     failed: dict[str, str]
     seconds: float
+    notes: dict[str, str] = dataclasses.field(default_factory=dict)  # what happened besides running: set aside, busy
 
 
-def _run_one(cfg: ExperimentConfig, path: str, quiet: bool = True) -> tuple[str, str]:
-    """Worker: run (or resume) one experiment, writing its file after every trial. Returns (path, error or "")."""
+def _run_one(cfg: ExperimentConfig, path: str, quiet: bool = True) -> tuple[str, str, str]:
+    """Worker: run (or resume) one experiment, writing its file after every trial.
+
+    Everything is decided under the file's :class:`~pipps.experiments.storage.ResultLock`: a file
+    another process is writing is left to it, one that became complete meanwhile is skipped, an
+    unfinished one of this experiment is resumed, a damaged one is set aside (renamed, not
+    overwritten). Returns ``(path, outcome, message)`` with outcome ``ran``, ``skipped`` or ``failed``.
+    """
     from pipps.experiments.loop import run_experiment
-    from pipps.experiments.results import partial_result, write_result
+    from pipps.experiments.results import read_result, write_result
+    from pipps.experiments.storage import ResultBusy, ResultLock, existing_result, set_aside
 
     try:
-        run_experiment(cfg, resume=partial_result(path, cfg), on_trial=lambda result: write_result(path, result))
-        return path, ""
+        with ResultLock(path):
+            found = existing_result(path, cfg)
+            if found.kind == "complete":
+                return path, "skipped", "complete (finished by another process)"
+            if found.kind == "other":
+                return path, "failed", f"OutputError: {path} holds another configuration ({found.detail})"
+            note = ""
+            if found.kind == "damaged":
+                note = f"set aside a damaged file as {set_aside(path).name}"
+            resume = read_result(path, verify=False) if found.kind == "unfinished" and found.trials else None
+            run_experiment(cfg, resume=resume, on_trial=lambda result: write_result(path, result))
+            return path, "ran", note
+    except ResultBusy as err:
+        return path, "skipped", f"running in another process ({err})"
     except Exception as err:  # the file already records the failure
-        return path, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3) if not quiet else ''}"
+        return path, "failed", f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3) if not quiet else ''}"
 
 
 def plan(
@@ -80,8 +93,7 @@ def plan(
     """Split the grid into (to run or resume, already complete, the trial each of the first
     resumes at: 0 from scratch). Raises ValueError when a file in ``out_dir`` holds another
     configuration than the one the grid maps to it."""
-    from pipps.experiments.config import config_difference
-    from pipps.experiments.results import ResultError, verify_result
+    from pipps.experiments.storage import existing_result
 
     out = Path(out_dir)
     todo, done, starts, seen = [], [], [], set()
@@ -90,20 +102,15 @@ def plan(
         if path in seen:
             raise ValueError(f"two configurations in the sweep map to the same file {path.name}")
         seen.add(path)
-        try:
-            status, stored, n = verify_result(path)
-        except ResultError:  # missing or damaged: run from scratch
-            todo.append((cfg, path))
-            starts.append(0)
-            continue
-        if stored != cfg:
-            raise ValueError(f"{path} holds another configuration ({config_difference(stored, cfg)}); "
+        found = existing_result(path, cfg)
+        if found.kind == "other":
+            raise ValueError(f"{path} holds another configuration ({found.detail}); "
                              "use another output folder, or remove the file to run this one")
-        if status == "complete" and n == cfg.num_trials:
+        if found.kind == "complete":
             done.append(path)
-        else:
+        else:  # missing or damaged (set aside when run): from scratch; unfinished: resumed
             todo.append((cfg, path))
-            starts.append(n)
+            starts.append(found.trials if found.kind == "unfinished" else 0)
     return todo, done, starts
 
 
@@ -142,16 +149,29 @@ def run_sweep(
     if batched and backend != "local":
         raise ValueError("batched sweeps run on the local backend (one process, one accelerator)")
     ray = import_ray() if backend == "ray" else None
+    from pipps.experiments.storage import check_output_folder, claim_sweep_folder
+
     start = time.perf_counter()
-    todo, done, _ = plan(list(configs), out_dir)
-    Path(out_dir).mkdir(parents=True, exist_ok=True)
-    ran, failed = [], {}
+    configs = list(configs)
+    todo, done, _ = plan(configs, out_dir)
+    check_output_folder(out_dir)
+    claim_sweep_folder(out_dir, configs)
+    ran, failed, skipped, notes = [], {}, [str(p) for p in done], {}
     total = len(todo)
 
-    def record(path, err):
-        (failed.__setitem__(path, err) if err else ran.append(path))
+    def record(path, outcome, message=""):
+        if outcome == "skipped":
+            skipped.append(path)
+            notes[path] = message
+            return
+        if outcome == "failed":
+            failed[path] = message
+        else:
+            ran.append(path)
+            if message:
+                notes[path] = message
         if on_done:
-            on_done(path, err, len(ran) + len(failed), total)
+            on_done(path, failed.get(path, ""), len(ran) + len(failed), total)
 
     if batched:
         todo = _run_batches(todo, batching, record)
@@ -166,7 +186,7 @@ def run_sweep(
             futures = [pool.submit(_run_one, cfg, str(path)) for cfg, path in todo]
             for fut in cf.as_completed(futures):
                 record(*fut.result())
-    return SweepReport(ran, [str(p) for p in done], failed, time.perf_counter() - start)
+    return SweepReport(ran, skipped, failed, time.perf_counter() - start, notes)
 
 
 def _run_batches(todo, batching: str, record) -> list:
@@ -187,25 +207,66 @@ def _run_batches(todo, batching: str, record) -> list:
         if len(items) == 1:
             rest += items
             continue
-        for path, err in _run_batch(cfgs, [str(p) for _, p in items], batching):
-            record(path, err)
+        rest += _run_batch(cfgs, [str(p) for _, p in items], batching, record)
     return rest
 
 
-def _run_batch(cfgs, paths: list[str], batching: str) -> list[tuple[str, str]]:
-    """One cell's seeds as one batch, each seed's file written after every trial; (path, error or "") each."""
+def _run_batch(cfgs, paths: list[str], batching: str, record) -> list:
+    """One cell's seeds as one batch, each seed's file written after every trial, under the files'
+    locks. Seeds whose file another process holds are skipped, complete ones too; seeds with
+    finished trials to resume are returned to run one by one (a batch starts from trial 0)."""
     from pipps.experiments.batched import run_batched
     from pipps.experiments.results import write_result
+    from pipps.experiments.storage import ResultBusy, ResultLock, existing_result, set_aside
 
-    def write(results):
-        for r, p in zip(results, paths):
-            write_result(p, r)
-
+    rest, batch, locks = [], [], []
     try:
-        results = run_batched(cfgs, on_trial=write, batching=batching)
-    except Exception as err:  # every file already records the failure
-        return [(p, f"{type(err).__name__}: {err}") for p in paths]
-    return [(p, "" if r.status == "complete" else r.error) for r, p in zip(results, paths)]
+        for cfg, path in zip(cfgs, paths):
+            lock = ResultLock(path)
+            try:
+                lock.acquire()
+            except ResultBusy as err:
+                record(path, "skipped", f"running in another process ({err})")
+                continue
+            found = existing_result(path, cfg)
+            if found.kind in ("missing", "damaged"):
+                if found.kind == "damaged":
+                    record_note = f"set aside a damaged file as {set_aside(path).name}"
+                    print(f"{path}: {record_note}", file=sys.stderr)
+                locks.append(lock)
+                batch.append((cfg, path))
+                continue
+            lock.release()
+            if found.kind == "complete":
+                record(path, "skipped", "complete (finished by another process)")
+            elif found.kind == "other":
+                record(path, "failed", f"OutputError: {path} holds another configuration ({found.detail})")
+            else:  # unfinished: resumed one by one after the batch
+                rest.append((cfg, Path(path)))
+        if len(batch) == 1:
+            rest.insert(0, (batch[0][0], Path(batch[0][1])))
+            batch = []
+            locks.pop().release()
+        if not batch:
+            return rest
+        b_cfgs, b_paths = [c for c, _ in batch], [p for _, p in batch]
+
+        def write(results):
+            for r, p in zip(results, b_paths):
+                write_result(p, r)
+
+        try:
+            results = run_batched(b_cfgs, on_trial=write, batching=batching)
+        except Exception as err:  # every file already records the failure
+            for p in b_paths:
+                record(p, "failed", f"{type(err).__name__}: {err}")
+            return rest
+        for r, p in zip(results, b_paths):
+            record(p, "ran" if r.status == "complete" else "failed", "" if r.status == "complete" else r.error)
+        return rest
+    finally:
+        for lock in locks:
+            lock.release()
 
 
 # -- the Ray backend -------------------------------------------------------------------------------
@@ -289,9 +350,10 @@ def _run_on_ray(ray, todo, jobs: int, address: str | None, record) -> None:
             (ref,), _ = ray.wait(list(in_flight), num_returns=1)
             name = in_flight.pop(ref)
             try:
-                record(name, ray.get(ref)[1])
+                _, outcome, message = ray.get(ref)
+                record(name, outcome, message)
             except ray.exceptions.RayError as err:  # the worker died; its file says running or failed
-                record(name, f"{type(err).__name__}: {err}")
+                record(name, "failed", f"{type(err).__name__}: {err}")
     finally:
         if started:
             ray.shutdown()  # stops a local instance this call started; only disconnects from a cluster

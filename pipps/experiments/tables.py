@@ -12,6 +12,8 @@ import dataclasses
 import math
 from typing import Any, Iterable
 
+import numpy as np
+
 from pipps.experiments.config import METHODS, ExperimentConfig, resolve_config
 
 
@@ -171,6 +173,66 @@ def _cell_key(values: dict[str, Any], method: str, cfg: ExperimentConfig) -> boo
     return True
 
 
+def judge(summaries: list[dict[str, Any]], resimulator=None) -> list[dict[str, Any]]:
+    """Add both verdicts to result summaries (:func:`pipps.experiments.results.read_summary`), in place:
+
+    * ``success``: the physical criterion (decides; :mod:`pipps.experiments.criteria`). Cart-pole
+      files written before the per-rollout flags were stored are re-simulated: the final trial's
+      own 30 evaluation rollouts are rerun with the stored policy and keys (``resimulated``; the
+      returns must match the stored ones, ``resim_error`` is the largest difference);
+    * ``return_success``: the thesis' return threshold (cart-pole; None for the unicycle);
+    * ``final_balanced``: the final trial's fraction of rollouts meeting the physical criterion;
+    * ``flip`` / ``return_flip``: the probability that a fresh evaluation flips each verdict;
+    * ``final_se``: the standard error of the final evaluated return.
+    """
+    from pipps.experiments import criteria
+
+    for s in summaries:
+        cfg = s["config"]
+        rets = np.asarray(s["final_eval_returns"], dtype=float)
+        s["final_se"] = criteria.standard_error(rets)
+        if cfg.task == "unicycle":
+            frac = float(s["upright_fraction"][-1])
+            need = cfg.upright_fraction
+            s["return_success"], s["return_flip"] = None, math.nan
+        else:
+            flags = s.get("final_eval_balanced")
+            if flags is None:
+                from pipps.experiments.results import read_result
+
+                resimulator = resimulator or criteria.Resimulator()
+                result = read_result(s["path"], verify=False)
+                ret, _, flags = resimulator.trial(result, len(result.trials) - 1)
+                s["resimulated"] = True
+                s["resim_error"] = float(np.max(np.abs(ret - rets)))
+            frac = float(np.mean(flags))
+            need = cfg.balanced_fraction
+            s["return_success"] = bool(float(np.mean(rets)) < cfg.success_threshold)
+            s["return_flip"] = criteria.flip_probability_return(rets, cfg.success_threshold)
+        s["final_balanced"] = frac
+        s["success"] = bool(frac >= need)
+        n = len(rets)
+        s["flip"] = criteria.flip_probability_fraction(int(round(frac * n)), n, need)
+    return summaries
+
+
+def fisher_exact(a_successes: int, a_n: int, b_successes: int, b_n: int) -> float:
+    """Two-sided p-value of Fisher's exact test that two success rates are equal."""
+    from scipy.stats import fisher_exact as fe
+
+    return float(fe([[a_successes, a_n - a_successes], [b_successes, b_n - b_successes]])[1])
+
+
+def difference_interval(a_successes: int, a_n: int, b_successes: int, b_n: int) -> tuple[float, float]:
+    """95 % interval of the difference of two independent rates (Newcombe's hybrid score method,
+    built from the two Wilson intervals; Newcombe 1998, method 10)."""
+    p1, p2 = a_successes / a_n, b_successes / b_n
+    l1, u1 = wilson_interval(a_successes, a_n)
+    l2, u2 = wilson_interval(b_successes, b_n)
+    d = p1 - p2
+    return (d - math.sqrt((p1 - l1) ** 2 + (u2 - p2) ** 2), d + math.sqrt((u1 - p1) ** 2 + (p2 - l2) ** 2))
+
+
 @dataclasses.dataclass
 class CellResult:
     cell: Cell
@@ -180,6 +242,9 @@ class CellResult:
     mean_final_return: float
     mean_wall_seconds: float
     mixed: tuple[str, ...] = ()  # settings (other than the seed) that differ between the cell's results
+    return_successes: int | None = None  # by the thesis' return threshold (None: not applicable)
+    disagree: tuple[int, ...] = ()  # seeds whose two verdicts differ
+    unsure: tuple[int, ...] = ()  # seeds whose verdict a fresh evaluation flips with probability > 5 %
 
     @property
     def rate(self) -> float:
@@ -208,33 +273,69 @@ def _settings(cfg: ExperimentConfig) -> dict[str, Any]:
     return d
 
 
-def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = None) -> list[CellResult]:
-    """Group result summaries (:func:`pipps.experiments.results.read_summary`) into the table's cells."""
+def counts(cfg: ExperimentConfig, preset: str = "thesis", custom: bool = False) -> str:
+    """Why a result does not count in the tables of experiment preset ``preset`` ("" when it does):
+    it was run with another preset, or (unless ``custom``) its settings depart from the preset's."""
+    from pipps.experiments.config import ConfigError, departures
+
+    if cfg.protocol != preset:
+        return f"run with --preset {cfg.protocol} (this table counts --preset {preset}; pipps table --preset {cfg.protocol})"
+    if custom:
+        return ""
+    try:
+        diff = departures(cfg)
+    except ConfigError as err:
+        return f"not expressible by the {preset} preset ({err})"
+    if diff:
+        shown = ", ".join(f"{k}={v!r} (preset: {p!r})" for k, (v, p) in sorted(diff.items()))
+        return f"departs from the {preset} preset: {shown} (pipps table --custom counts it)"
+    return ""
+
+
+def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = "thesis",
+            custom: bool = False) -> list[CellResult]:
+    """Group result summaries (:func:`pipps.experiments.results.read_summary`) into the table's cells.
+
+    A result counts when it ran with experiment preset ``preset`` and, unless ``custom``, follows it
+    in every setting but the cell's and the seed (:func:`counts`); ``preset=None`` counts every
+    result (the pooled settings are then named in ``mixed``)."""
     out = []
     for cell in table.cells:
         values = dict(cell.values)
         rows = [s for s in summaries if s["config"].task == table.task and _cell_key(values, cell.method, s["config"])
-                and (preset is None or s["config"].preset == preset)]
+                and (preset is None or not counts(s["config"], preset, custom))]
         n = len(rows)
         dicts = [_settings(r["config"]) for r in rows]
         mixed = tuple(sorted(k for k in (dicts[0] if dicts else {}) if any(d[k] != dicts[0][k] for d in dicts)))
+        judged = [s for s in rows if s.get("return_success") is not None]
         out.append(CellResult(
             cell, sum(bool(s["success"]) for s in rows), n, sorted(s["config"].seed for s in rows),
             float(sum(s["final_return"] for s in rows) / n) if n else math.nan,
-            float(sum(s["wall_seconds"] for s in rows) / n) if n else math.nan, mixed))
+            float(sum(s["wall_seconds"] for s in rows) / n) if n else math.nan, mixed,
+            sum(bool(s["return_success"]) for s in judged) if judged else None,
+            tuple(sorted(s["config"].seed for s in judged if s["return_success"] != s["success"])),
+            tuple(sorted(s["config"].seed for s in rows if s.get("flip", 0.0) > 0.05))))
     return out
 
 
-def render_table(table: Table, results: list[CellResult], *, show_empty: bool = False) -> str:
+def render_table(table: Table, results: list[CellResult], *, show_empty: bool = False,
+                 compare: tuple[str, str] = ("tp", "pilco")) -> str:
     """Markdown: one row per table row, one column per method; each cell
-    ``ours [lo, hi] (n) / thesis``, with ``!`` where the thesis value lies outside our interval."""
+    ``ours [lo, hi] (n) / thesis`` by the physical criterion, with ``!`` where the thesis value lies
+    outside our interval and ``· return r`` the rate by the thesis' return threshold. Where both
+    methods of ``compare`` have results, a last column gives their difference with its 95 %
+    interval and Fisher's exact p. Under the table: the seeds on which the two verdicts differ and
+    those a fresh evaluation would flip with probability above 5 %."""
     by = {(r.cell.row, r.cell.method): r for r in results}
     methods = [m for m in table.methods if show_empty or any(by.get((row, m)) and by[(row, m)].n for row in table.rows)]
     if not methods:
         return f"**{table.title}**: no complete results for this table."
-    lines = [f"**{table.title}** — ours: success rate [95 % Wilson interval] (seeds) / thesis "
-             "(`!`: the thesis value lies outside our interval)", "",
-             "| | " + " | ".join(METHODS[m] for m in methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    a, b = compare
+    paired = a in methods and b in methods
+    head = [METHODS[m] for m in methods] + ([f"{METHODS[a]} − {METHODS[b]} [95 %], Fisher p"] if paired else [])
+    lines = [f"**{table.title}** — ours: success rate by the physical criterion [95 % Wilson interval] (seeds) / "
+             "thesis (`!`: the thesis value lies outside our interval); `· return r`: the rate by the thesis' "
+             "return threshold", "", "| | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
     for row in table.rows:
         cells = []
         for m in methods:
@@ -248,32 +349,54 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
                 continue
             lo, hi = r.interval
             flag = " !" if r.agrees is False else ""
-            cells.append(f"{r.rate:.2f} [{lo:.2f}, {hi:.2f}] ({r.n}) / {thesis}{flag}")
+            ret = f" · return {r.return_successes / r.n:.2f}" if r.return_successes is not None else ""
+            cells.append(f"{r.rate:.2f} [{lo:.2f}, {hi:.2f}] ({r.n}) / {thesis}{flag}{ret}")
+        if paired:
+            ra, rb = by.get((row, a)), by.get((row, b))
+            if ra and rb and ra.n and rb.n:
+                lo, hi = difference_interval(ra.successes, ra.n, rb.successes, rb.n)
+                thesis = ("" if ra.cell.thesis is None or rb.cell.thesis is None
+                          else f" (thesis {ra.cell.thesis - rb.cell.thesis:+.2f})")
+                cells.append(f"{ra.rate - rb.rate:+.2f} [{lo:+.2f}, {hi:+.2f}], p = "
+                             f"{fisher_exact(ra.successes, ra.n, rb.successes, rb.n):.2g}{thesis}")
+            else:
+                cells.append("")
         if any(c and not c.startswith("—") for c in cells) or show_empty:
             lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    notes = []
     for r in results:
+        name = f"{r.cell.row}, {METHODS[r.cell.method]}"
         if r.mixed:
-            lines.append(f"\nWarning: {r.cell.row}, {METHODS[r.cell.method]} pools results whose settings differ in "
-                         f"{', '.join(r.mixed)}; read them from separate folders.")
+            notes.append(f"Warning: {name} pools results whose settings differ in {', '.join(r.mixed)}; read them "
+                         "from separate folders.")
+        if r.disagree:
+            notes.append(f"{name}: the return threshold and the physical criterion disagree on seed(s) "
+                         f"{', '.join(map(str, r.disagree))} (the physical criterion decides).")
+        if r.unsure:
+            notes.append(f"{name}: a fresh evaluation would flip the verdict with probability > 5 % on seed(s) "
+                         f"{', '.join(map(str, r.unsure))}.")
+    if notes:
+        lines += [""] + notes
     return "\n".join(lines)
 
 
 def render_curves(summaries: list[dict[str, Any]]) -> str:
-    """Markdown: the evaluated return per trial of every result (one row each), seeds sorted."""
+    """Markdown: the evaluated return per trial of every result (one row each), seeds sorted, and the
+    final trial's fraction of rollouts meeting the physical criterion (balanced: cart-pole; upright:
+    unicycle) with the standard error of its final return, where :func:`judge` added them."""
     rows = sorted(summaries, key=lambda s: (s["config"].task, s["config"].method, s["config"].k, s["config"].seed))
     if not rows:
         return ""
     n = max(len(s["eval_return"]) for s in rows)
-    # the unicycle's success is judged on the upright fraction of the final trial's rollouts
-    upright = any(s["config"].task == "unicycle" for s in rows)
-    lines = ["| experiment | success | " + " | ".join(str(i) for i in range(n))
-             + (" | final upright" if upright else "") + " | wall (min) |",
-             "|---" * (n + 3 + upright) + "|"]
+    lines = ["| experiment | success (return) | " + " | ".join(str(i) for i in range(n))
+             + " | final ± SE | final balanced / upright | wall (min) |", "|---" * (n + 5) + "|"]
     for s in rows:
         c = s["config"]
         vals = [f"{v:.1f}" for v in s["eval_return"]] + [""] * (n - len(s["eval_return"]))
-        if upright:
-            vals.append(f"{s['upright_fraction'][-1]:.2f}" if c.task == "unicycle" else "")
-        lines.append(f"| {c.task} {METHODS[c.method]} k={c.k:g} seed {c.seed} | {'yes' if s['success'] else 'no'} | "
-                     + " | ".join(vals) + f" | {s['wall_seconds'] / 60:.0f} |")
+        ret = "" if s.get("return_success") is None else f" ({'yes' if s['return_success'] else 'no'})"
+        frac = s.get("final_balanced")
+        frac = "" if frac is None else f"{frac:.2f}"
+        se = s.get("final_se", math.nan)
+        lines.append(f"| {c.task} {METHODS[c.method]} k={c.k:g} seed {c.seed} | {'yes' if s['success'] else 'no'}{ret} | "
+                     + " | ".join(vals) + f" | {s['eval_return'][-1]:.1f} ± {se:.1f} | {frac} | {s['wall_seconds'] / 60:.0f} |")
     return "\n".join(lines)

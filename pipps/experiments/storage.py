@@ -1,0 +1,274 @@
+"""Where results go: output checks before any work, one writer per result file, and what an existing
+file means for a new run (docs/reliability.md).
+
+A result file is an experiment's identity: its configuration (``config_json``, ``config_hash``)
+names what produced it, and its name (:func:`pipps.experiments.config.experiment_name`) is unique
+to that configuration. This module keeps the two honest:
+
+* :func:`check_output_file` / :func:`check_output_folder` verify, before anything is computed,
+  that the result can be written there (the folder exists or can be made, is a folder, and a file
+  can be created in it), raising :class:`OutputError` with a one-line reason.
+* :class:`ResultLock` is an exclusive, non-blocking lock on one result file (``flock`` on a hidden
+  ``.NAME.lock`` beside it, released by the kernel if the holder dies). Every process that writes
+  a result holds it for the whole experiment and decides what to do with an existing file only
+  once it holds it, so two runs or sweeps never write one file, and a sweep never reruns an
+  experiment that another process finished in the meantime.
+* :func:`existing_result` classifies what is at a path for a configuration: nothing, a complete or
+  an unfinished result of the same experiment, another experiment, or a damaged file.
+* :func:`claim_sweep_folder` writes or checks the folder's manifest ``.pipps-sweep.json`` (the
+  experiment preset and the settings that depart from it), so one folder holds one protocol.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+from pipps.experiments.config import ExperimentConfig, config_difference, departures, same_experiment
+
+
+class OutputError(ValueError):
+    """A result cannot be written where asked, or would replace another one; the message says which and why."""
+
+
+class ResultBusy(OutputError):
+    """Another process holds the result file's lock (it is running that experiment now)."""
+
+
+# -- output paths ------------------------------------------------------------------------------------
+
+
+def _probe_folder(folder: Path) -> None:
+    """Create and remove a file in ``folder`` (which exists): the one test of writability that does not lie."""
+    probe = folder / f".pipps-probe-{os.getpid()}"
+    try:
+        fd = os.open(probe, os.O_CREAT | os.O_WRONLY | os.O_EXCL, 0o644)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise OutputError(f"cannot write in {folder}: {err.strerror or err}") from None
+
+
+def _make_folder(folder: Path, create: bool) -> None:
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"{folder} is a file, not a folder")
+    if not folder.exists():
+        for parent in folder.parents:  # the nearest existing ancestor must be a folder
+            if parent.exists():
+                if not parent.is_dir():
+                    raise OutputError(f"cannot create {folder}: {parent} is a file, not a folder")
+                if not create:
+                    _probe_folder(parent)
+                break
+        if not create:
+            return
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise OutputError(f"cannot create folder {folder}: {err.strerror or err}") from None
+    _probe_folder(folder)
+
+
+def check_output_file(path: str | os.PathLike, *, create: bool = True) -> Path:
+    """``path`` as a result file that can be written: its folder exists (made if ``create``) and is
+    writable, and ``path`` is not a folder. Raises :class:`OutputError`."""
+    path = Path(path)
+    if path.is_dir():
+        raise OutputError(f"{path} is a folder; give a result file's name (…/NAME.h5)")
+    if path.suffix != ".h5":
+        raise OutputError(f"{path}: a result file's name must end in .h5")
+    _make_folder(path.parent if str(path.parent) else Path("."), create)
+    return path
+
+
+def check_output_folder(path: str | os.PathLike, *, create: bool = True) -> Path:
+    """``path`` as a result folder: a folder (made if ``create``; with ``create=False`` its nearest
+    existing ancestor must be writable) in which files can be written. Raises :class:`OutputError`."""
+    path = Path(path)
+    _make_folder(path, create)
+    return path
+
+
+# -- one writer per result ---------------------------------------------------------------------------
+
+
+def lock_path(path: str | os.PathLike) -> Path:
+    path = Path(path)
+    return path.with_name(f".{path.name}.lock")
+
+
+class ResultLock:
+    """Exclusive lock on one result file for one process (module doc). Use as a context manager;
+    raises :class:`ResultBusy` at once if another process holds it. Not re-entrant."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self.lock = lock_path(self.path)
+        self._fd: int | None = None
+
+    def acquire(self) -> "ResultLock":
+        import fcntl
+
+        while True:
+            try:
+                fd = os.open(self.lock, os.O_CREAT | os.O_RDWR, 0o644)
+            except OSError as err:
+                raise OutputError(f"cannot create the lock file {self.lock}: {err.strerror or err}") from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as err:
+                os.close(fd)
+                if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    holder = _read_holder(self.lock)
+                    raise ResultBusy(f"{self.path} is being written by another process{holder}; "
+                                     "wait for it or pick another output") from None
+                raise OutputError(f"cannot lock {self.lock}: {err.strerror or err}") from None
+            # the previous holder may have removed the lock file between our open and flock: retry on a live one
+            try:
+                same = os.fstat(fd).st_ino == os.stat(self.lock).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()} {os.uname().nodename if hasattr(os, 'uname') else ''}\n".encode())
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        if self._fd is None:
+            return
+        try:
+            os.unlink(self.lock)  # while still held: a waiting process re-checks the inode (acquire)
+        except OSError:
+            pass
+        os.close(self._fd)
+        self._fd = None
+
+    def __enter__(self) -> "ResultLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _read_holder(lock: Path) -> str:
+    try:
+        text = lock.read_text().split()
+    except OSError:
+        return ""
+    return f" (pid {text[0]}{' on ' + text[1] if len(text) > 1 else ''})" if text else ""
+
+
+# -- what is already there -------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Existing:
+    """What a path holds for a configuration. ``kind``: ``missing``, ``complete`` (this experiment,
+    finished), ``unfinished`` (this experiment, ``trials`` of them stored), ``other`` (another
+    experiment; ``detail`` names the settings that differ) or ``damaged`` (``detail`` says why)."""
+
+    kind: str
+    trials: int = 0
+    detail: str = ""
+
+
+def existing_result(path: str | os.PathLike, cfg: ExperimentConfig) -> Existing:
+    from pipps.experiments.results import ResultError, verify_result
+
+    path = Path(path)
+    if not path.exists():
+        return Existing("missing")
+    try:
+        status, stored, n = verify_result(path)
+    except ResultError as err:
+        return Existing("damaged", detail=str(err))
+    if not same_experiment(stored, cfg):
+        return Existing("other", n, config_difference(stored, cfg))
+    if status == "complete" and n == cfg.num_trials:
+        return Existing("complete", n)
+    return Existing("unfinished", n)
+
+
+def set_aside(path: str | os.PathLike) -> Path:
+    """Rename a damaged file out of the way (``NAME.h5.damaged-TIMESTAMP``) instead of overwriting it."""
+    path = Path(path)
+    target = path.with_name(f"{path.name}.damaged-{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}")
+    os.replace(path, target)
+    return target
+
+
+# -- the sweep folder's manifest ----------------------------------------------------------------------
+
+MANIFEST = ".pipps-sweep.json"
+
+
+def _manifest_of(cfg: ExperimentConfig) -> dict[str, Any]:
+    return {"protocol": cfg.protocol,
+            "settings": {k: v for k, (v, _) in sorted(departures(cfg).items())}}
+
+
+def claim_sweep_folder(folder: str | os.PathLike, configs: list[ExperimentConfig], *, write: bool = True) -> None:
+    """Check (and, with ``write``, create) the folder's manifest: every experiment a sweep puts in a
+    folder follows one experiment preset with one set of departures from it. A sweep whose settings
+    differ from the folder's is refused by name before anything runs."""
+    if not configs:
+        return
+    mine = _manifest_of(configs[0])
+    for cfg in configs[1:]:
+        if _manifest_of(cfg) != mine:
+            raise OutputError("the sweep's experiments depart from their preset in different settings "
+                              f"({_manifest_of(cfg)['settings']} against {mine['settings']})")
+    path = Path(folder) / MANIFEST
+    text = json.dumps(mine, sort_keys=True, default=list)
+    mine = json.loads(text)  # tuples as lists, as they come back from the file
+    if not path.exists():  # a folder from before manifests, or filled by `pipps run`: its files decide
+        _check_existing_files(Path(folder), mine)
+    if write:
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            pass
+        except OSError as err:
+            raise OutputError(f"cannot write {path}: {err.strerror or err}") from None
+        else:
+            with os.fdopen(fd, "w") as fh:
+                fh.write(text + "\n")
+            return
+    if not path.exists():
+        return
+    try:
+        theirs = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise OutputError(f"{path} is not a readable sweep manifest ({err}); remove it or use another folder") from None
+    if theirs != mine:
+        raise OutputError(f"{folder} holds a sweep run with {_show(theirs)}; this one has {_show(mine)}. "
+                          "One folder holds one protocol: use another --out")
+
+
+def _show(m: dict[str, Any]) -> str:
+    extra = ", ".join(f"{k}={v}" for k, v in m.get("settings", {}).items()) or "no --set"
+    return f"--preset {m.get('protocol')} with {extra}"
+
+
+def _check_existing_files(folder: Path, mine: dict[str, Any]) -> None:
+    from pipps.experiments.results import ResultError, verify_result
+
+    if not folder.is_dir():
+        return
+    for path in sorted(folder.glob("*.h5")):
+        try:
+            _, stored, _ = verify_result(path)
+        except ResultError:
+            continue  # damaged files are set aside when their experiment runs
+        theirs = json.loads(json.dumps(_manifest_of(stored), sort_keys=True, default=list))
+        if theirs != mine:
+            raise OutputError(f"{folder} holds {path.name}, run with {_show(theirs)}; this sweep has {_show(mine)}. "
+                              "One folder holds one protocol: use another --out")
