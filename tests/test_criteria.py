@@ -1,0 +1,112 @@
+"""The physical success criterion and the verdict statistics (pipps.experiments.criteria, docs/results.md)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.stats import binom
+
+from pipps.experiments.criteria import (
+    Resimulator,
+    balanced,
+    flip_probability_fraction,
+    flip_probability_return,
+)
+from pipps.experiments.results import read_result, read_summary
+from pipps.experiments.tables import difference_interval, fisher_exact, judge, wilson_interval
+
+RESULTS = Path(__file__).resolve().parents[1] / "results/thesis"
+
+
+def _states(theta, x, n=31):
+    s = np.zeros((n, 4))
+    s[:, 3], s[:, 0] = theta, x
+    return s
+
+
+def test_balanced_reads_the_last_states_and_wraps_the_angle():
+    up = _states(math.pi, 0.0)
+    assert balanced(up)
+    assert balanced(_states(3 * math.pi + 0.29, 0.0))  # upright after swinging over once: still upright
+    assert balanced(_states(-math.pi, 0.49))  # the other swing direction
+    assert not balanced(_states(math.pi + 0.31, 0.0)) and not balanced(_states(math.pi, 0.51))
+    early = _states(math.pi, 0.0)
+    early[:21, 3] = 0.0  # hanging until state 20, then upright for the last 10 states
+    assert balanced(early, steps=10) and not balanced(early, steps=11)
+    late = _states(math.pi, 0.0)
+    late[-1, 0] = 0.8  # runs away in the very last state
+    assert not balanced(late)
+    batch = np.stack([up, late, early])
+    assert balanced(batch).tolist() == [True, False, True]
+    assert np.asarray(balanced(jnp.asarray(batch))).tolist() == [True, False, True]  # the JAX path agrees
+
+
+def test_fraction_flip_probability_is_the_beta_binomial_predictive():
+    """Against a Monte Carlo of the same model: p ~ Beta(b + ½, n − b + ½), fresh count ~ Bin(n, p)."""
+    rng = np.random.default_rng(0)
+    n, need = 30, 0.5
+    for b in (3, 14, 15, 16, 29, 30):
+        p = rng.beta(b + 0.5, n - b + 0.5, 400_000)
+        fresh = rng.binomial(n, p)
+        passed = b >= 15
+        mc = float(np.mean((fresh >= 15) != passed))
+        got = flip_probability_fraction(b, n, need)
+        se = math.sqrt(mc * (1 - mc) / p.size) + 1e-6
+        assert abs(got - mc) < 5 * se, (b, got, mc)
+    assert flip_probability_fraction(30, 30, 0.5) < 1e-6 and flip_probability_fraction(15, 30, 0.5) > 0.3
+
+
+def test_return_flip_probability_matches_its_normal_model():
+    rng = np.random.default_rng(1)
+    r = rng.normal(14.0, 3.0, 30)
+    se = np.std(r, ddof=1) / math.sqrt(30)
+    # fresh − observed ~ N(0, 2 SE²): P(cross 15) = Φ(−|m − 15| / (√2 SE))
+    from scipy.stats import norm
+
+    assert flip_probability_return(r, 15.0) == pytest.approx(norm.cdf(-abs(r.mean() - 15) / (math.sqrt(2) * se)), 1e-12)
+    assert flip_probability_return(np.full(30, 8.0), 15.0) == 0.0
+
+
+def test_fisher_and_newcombe_against_known_values():
+    # Fisher's exact test, two-sided, by direct enumeration of the hypergeometric table
+    from scipy.stats import hypergeom
+
+    a, n1, b, n2 = 17, 20, 8, 20
+    total = hypergeom(n1 + n2, a + b, n1)
+    p_obs = total.pmf(a)
+    ks = np.arange(max(0, a + b - n2), min(a + b, n1) + 1)
+    brute = float(sum(total.pmf(k) for k in ks if total.pmf(k) <= p_obs * (1 + 1e-7)))
+    assert fisher_exact(a, n1, b, n2) == pytest.approx(brute, rel=1e-9)
+    # Newcombe (1998) Table II, example (a): 56/70 vs 48/80 → difference 0.2, 95 % CI (0.0524, 0.3339)
+    lo, hi = difference_interval(56, 70, 48, 80)
+    assert lo == pytest.approx(0.0524, abs=5e-4) and hi == pytest.approx(0.3339, abs=5e-4)
+    # and its coverage is not below nominal by much on a grid (a property the hybrid method has)
+    cover = []
+    for p1, p2 in ((0.8, 0.4), (0.95, 0.5), (0.5, 0.5)):
+        k1, k2 = np.arange(21), np.arange(21)
+        w = binom.pmf(k1, 20, p1)[:, None] * binom.pmf(k2, 20, p2)[None, :]
+        hit = np.array([[lo <= p1 - p2 <= hi for lo, hi in (difference_interval(i, 20, j, 20),)][0]
+                        for i in k1 for j in k2]).reshape(21, 21)
+        cover.append(float(np.sum(w * hit)))
+    assert min(cover) > 0.92, cover
+    assert wilson_interval(4, 5) == pytest.approx((0.376, 0.964), abs=1e-3)
+
+
+def test_resimulation_reproduces_a_stored_evaluation_exactly_and_judges_it():
+    """A committed file's final evaluation, rerun with its stored policy and keys, gives its stored
+    returns (the true system is deterministic given the keys); the table's verdict comes from it."""
+    path = RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5"
+    result = read_result(path)
+    ret, upright, flags = Resimulator().trial(result, len(result.trials) - 1)
+    np.testing.assert_allclose(ret, result.trials[-1].eval_returns, rtol=1e-9, atol=1e-9)
+    assert upright.all()
+    (s,) = judge([read_summary(path)])
+    assert s["resimulated"] and s["resim_error"] < 1e-9
+    # swings up (return 13.9 < 15) but never ends balanced: the verdicts differ, the physical one decides
+    assert s["return_success"] and not s["success"] and s["final_balanced"] == float(np.mean(flags)) == 0.0
+    with pytest.raises(ValueError, match="random trial"):
+        Resimulator().trial(result, 0)
