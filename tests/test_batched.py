@@ -121,3 +121,43 @@ def test_sweep_batched_writes_each_seed_like_the_unbatched_sweep(unbatched, tmp_
         assert_close_results(ref, read_result(tmp_path / f"{experiment_name(cfg)}.h5"))
     again = run_sweep(cfgs, tmp_path, batched=True)
     assert again.ran == [] and len(again.skipped) == 2
+
+
+def test_a_batched_sweep_cut_part_way_resumes_as_a_batch(unbatched, tmp_path):
+    """A GPU job cut off after trial 1 (issue 18): the files hold trials 0-1; the rerun sweep resumes
+    both seeds as one batch from trial 2 and ends where uninterrupted runs end."""
+    from pipps.experiments.results import write_result
+
+    cfgs = [small(s) for s in SEEDS]
+    paths = [tmp_path / f"{experiment_name(c)}.h5" for c in cfgs]
+
+    def cut(event):
+        if event["phase"] == "gp" and event["trial"] == 2:
+            raise KeyboardInterrupt  # the job's time limit
+
+    with pytest.raises(KeyboardInterrupt):
+        run_batched(cfgs, progress=cut, batching="map",
+                    on_trial=lambda rs: [write_result(p, r) for r, p in zip(rs, paths)])
+    assert [len(read_result(p, verify=False).trials) for p in paths] == [2, 2]
+    seen = []
+    import pipps.experiments.batched as batched_module
+
+    real = batched_module.run_batched
+
+    def spy(cfgs, **kw):
+        seen.append([len(r.trials) for r in kw["resumes"]] if kw.get("resumes") else None)
+        return real(cfgs, **kw)
+
+    batched_module.run_batched = spy
+    try:
+        report = run_sweep(cfgs, tmp_path, batched=True)
+    finally:
+        batched_module.run_batched = real
+    assert seen == [[2, 2]] and not report.failed and len(report.ran) == 2
+    for path, ref in zip(paths, unbatched):
+        got = read_result(path)
+        assert_close_results(ref, got)
+        assert got.resumed_at == [2]
+    with pytest.raises(ValueError, match="same trial"):
+        run_batched(cfgs, resumes=[read_result(paths[0]).__class__(cfgs[0], unbatched[0].trials[:1]),
+                                   read_result(paths[1]).__class__(cfgs[1], unbatched[1].trials[:2])])

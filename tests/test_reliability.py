@@ -426,7 +426,7 @@ def test_a_sweep_runs_through_a_two_node_ray_cluster_on_loopback(tmp_path):
     for a private network), a sweep through the cluster address and through the Ray Client."""
     pytest.importorskip("ray")
     env = dict(os.environ, RAY_AUTH_MODE="disabled", JAX_PLATFORMS="cpu")
-    port, client = 6391, 10091
+    port, client = 6391, 23091  # outside the worker port range (10002-19999)
     ray = [sys.executable, "-m", "ray.scripts.scripts"]
     subprocess.run([*ray, "stop", "--force"], env=env, capture_output=True, timeout=120)
     try:

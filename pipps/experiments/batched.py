@@ -49,6 +49,8 @@ from pipps.experiments.loop import (
     ExperimentResult,
     Progress,
     _check_finite_data,
+    _check_resumable,
+    _fit_state_from,
     _trial_from,
     balance_settings,
     evaluate_rollouts,
@@ -122,13 +124,27 @@ def run_batched(
     progress: Progress | None = None,
     on_trial: Callable[[list[ExperimentResult]], None] | None = None,
     batching: str = "auto",
+    resumes: Sequence[ExperimentResult] | None = None,
 ) -> list[ExperimentResult]:
     """Run the seeds of one cell as one batch; see the module docstring. Returns one result per
     configuration, in order. Raises what fails in a batched phase, after ``on_trial`` saw every
-    seed marked failed."""
+    seed marked failed.
+
+    ``resumes``: one partial result per configuration, all with the same number n of finished
+    trials (a sweep groups its seeds so): the batch continues every seed at trial n from the state
+    its file holds (last policy, data, GP warm start), as :func:`pipps.experiments.loop.run_experiment`
+    resumes one seed. A GPU job cut off after a few minutes thus loses at most the trial in flight."""
     if batching not in BATCHINGS:
         raise ValueError(f"batching must be one of {', '.join(BATCHINGS)}, got {batching!r}")
     check_batchable(cfgs)
+    if resumes is not None:
+        if len(resumes) != len(cfgs):
+            raise ValueError(f"resumes: {len(resumes)} partial results for {len(cfgs)} configurations")
+        for c, r in zip(cfgs, resumes):
+            _check_resumable(c, r)
+        if len({len(r.trials) for r in resumes}) != 1:
+            raise ValueError("resumes: every seed of a batch must resume at the same trial, got "
+                             f"{sorted({len(r.trials) for r in resumes})}")
     progress = progress or (lambda event: None)
     on_trial = on_trial or (lambda results: None)
     t_start = time.perf_counter()
@@ -147,6 +163,19 @@ def run_batched(
     fit_states: list = [None] * S
     active = list(range(S))  # seeds still running
     chunk = min(cfg.progress_chunk, cfg.policy_evals)
+    first, wall_before = 0, [0.0] * S
+    if resumes is not None and resumes[0].trials:
+        first = len(resumes[0].trials)
+        for s, r in enumerate(resumes):
+            results[s].trials = list(r.trials)
+            results[s].resumed_at = [*r.resumed_at, first]
+            wall_before[s] = r.wall_seconds
+            policies[s] = ravel_pytree(policies[s])[1](jnp.asarray(r.trials[-1].policy))
+            for t in r.trials:
+                x_in, y_out = training_pairs(task, stored_trajectory(t))
+                inputs[s].append(x_in)
+                targets[s].append(y_out)
+            fit_states[s] = _fit_state_from(r.trials)
 
     def finish_trial(i, trials, t0):
         for s, trial in trials.items():
@@ -158,11 +187,11 @@ def run_batched(
             targets[s].append(y_out)
             results[s].trials.append(trial)
         wall = time.perf_counter() - t_start
-        for r in results:
-            r.wall_seconds = wall
+        for s, r in enumerate(results):
+            r.wall_seconds = wall_before[s] + wall
 
     try:
-        for i in range(cfg.num_trials):
+        for i in range(first, cfg.num_trials):
             if not active:
                 break
             keys = [jax.random.split(jax.random.fold_in(k_trials[s], i), 4) for s in active]
@@ -242,15 +271,15 @@ def run_batched(
         for s in active:
             _fail(results[s], err)
         wall = time.perf_counter() - t_start
-        for r in results:
-            r.wall_seconds = wall
+        for s, r in enumerate(results):
+            r.wall_seconds = wall_before[s] + wall
         on_trial(results)
         raise
     for s in active:
         results[s].status = "complete"
     wall = time.perf_counter() - t_start
-    for r in results:
-        r.wall_seconds = wall
+    for s, r in enumerate(results):
+        r.wall_seconds = wall_before[s] + wall
     on_trial(results)
     return results
 

@@ -137,8 +137,8 @@ def run_sweep(
     ``batched``: the unfinished seeds of each cell run as one batch in this process
     (:func:`pipps.experiments.batched.run_batched`, seed axis computed per ``batching``), one cell
     after the other; cells of methods that cannot be batched (PILCO, the fixed-seed methods) and
-    cells with a single unfinished seed run as usual. A batch starts its seeds from their first
-    trial (it does not resume part-way).
+    cells with a single unfinished seed run as usual. Unfinished seeds resume from their last
+    finished trial, batched with the seeds that stopped after the same trial.
     """
     if jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
@@ -212,14 +212,16 @@ def _run_batches(todo, batching: str, record) -> list:
 
 
 def _run_batch(cfgs, paths: list[str], batching: str, record) -> list:
-    """One cell's seeds as one batch, each seed's file written after every trial, under the files'
-    locks. Seeds whose file another process holds are skipped, complete ones too; seeds with
-    finished trials to resume are returned to run one by one (a batch starts from trial 0)."""
+    """One cell's seeds as batches, each seed's file written after every trial, under the files'
+    locks. Seeds whose file another process holds are skipped, complete ones too. Unfinished seeds
+    resume: seeds that stopped after the same trial form one resumed batch (a GPU job cut off
+    part-way loses at most the trial in flight); a seed alone at its trial is returned to run
+    one by one."""
     from pipps.experiments.batched import run_batched
-    from pipps.experiments.results import write_result
+    from pipps.experiments.results import read_result, write_result
     from pipps.experiments.storage import ResultBusy, ResultLock, existing_result, set_aside
 
-    rest, batch, locks = [], [], []
+    rest, groups, locks = [], {}, {}
     try:
         for cfg, path in zip(cfgs, paths):
             lock = ResultLock(path)
@@ -229,43 +231,43 @@ def _run_batch(cfgs, paths: list[str], batching: str, record) -> list:
                 record(path, "skipped", f"running in another process ({err})")
                 continue
             found = existing_result(path, cfg)
-            if found.kind in ("missing", "damaged"):
-                if found.kind == "damaged":
-                    record_note = f"set aside a damaged file as {set_aside(path).name}"
-                    print(f"{path}: {record_note}", file=sys.stderr)
-                locks.append(lock)
-                batch.append((cfg, path))
-                continue
-            lock.release()
             if found.kind == "complete":
+                lock.release()
                 record(path, "skipped", "complete (finished by another process)")
-            elif found.kind == "other":
+                continue
+            if found.kind == "other":
+                lock.release()
                 record(path, "failed", f"OutputError: {path} holds another configuration ({found.detail})")
-            else:  # unfinished: resumed one by one after the batch
+                continue
+            if found.kind == "damaged":
+                print(f"{path}: set aside a damaged file as {set_aside(path).name}", file=sys.stderr)
+            resume = read_result(path, verify=False) if found.kind == "unfinished" and found.trials else None
+            locks[path] = lock
+            groups.setdefault(len(resume.trials) if resume else 0, []).append((cfg, path, resume))
+        for n, items in sorted(groups.items()):
+            if len(items) == 1:  # nothing to batch with: one by one (it takes its lock again)
+                cfg, path, _ = items[0]
+                locks.pop(path).release()
                 rest.append((cfg, Path(path)))
-        if len(batch) == 1:
-            rest.insert(0, (batch[0][0], Path(batch[0][1])))
-            batch = []
-            locks.pop().release()
-        if not batch:
-            return rest
-        b_cfgs, b_paths = [c for c, _ in batch], [p for _, p in batch]
+                continue
+            b_cfgs, b_paths = [c for c, _, _ in items], [p for _, p, _ in items]
+            resumes = [r for _, _, r in items] if n else None
 
-        def write(results):
+            def write(results, b_paths=b_paths):
+                for r, p in zip(results, b_paths):
+                    write_result(p, r)
+
+            try:
+                results = run_batched(b_cfgs, on_trial=write, batching=batching, resumes=resumes)
+            except Exception as err:  # every file already records the failure
+                for p in b_paths:
+                    record(p, "failed", f"{type(err).__name__}: {err}")
+                continue
             for r, p in zip(results, b_paths):
-                write_result(p, r)
-
-        try:
-            results = run_batched(b_cfgs, on_trial=write, batching=batching)
-        except Exception as err:  # every file already records the failure
-            for p in b_paths:
-                record(p, "failed", f"{type(err).__name__}: {err}")
-            return rest
-        for r, p in zip(results, b_paths):
-            record(p, "ran" if r.status == "complete" else "failed", "" if r.status == "complete" else r.error)
+                record(p, "ran" if r.status == "complete" else "failed", "" if r.status == "complete" else r.error)
         return rest
     finally:
-        for lock in locks:
+        for lock in locks.values():
             lock.release()
 
 
