@@ -425,6 +425,15 @@ def test_a_sweep_runs_through_a_two_node_ray_cluster_on_loopback(tmp_path):
     """A head and a worker node on 127.0.0.1 (token authentication off, as docs/experiments.md says
     for a private network), a sweep through the cluster address and through the Ray Client."""
     pytest.importorskip("ray")
+    import ipaddress
+
+    from ray._private.services import get_node_ip_address
+
+    node_ip = get_node_ip_address()
+    if not ipaddress.ip_address(node_ip).is_loopback:
+        # Ray binds a node to the machine's interface address and ignores --node-ip-address 127.0.0.1
+        # (intended, ray-project/ray#26293); a test here may only send traffic to loopback addresses
+        pytest.skip(f"Ray would bind the cluster to {node_ip}, not a loopback address")
     env = dict(os.environ, RAY_AUTH_MODE="disabled", JAX_PLATFORMS="cpu")
     port, client = 6391, 23091  # outside the worker port range (10002-19999)
     ray = [sys.executable, "-m", "ray.scripts.scripts"]
