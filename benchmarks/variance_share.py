@@ -1,7 +1,7 @@
 """Seconds per TP policy step on a real snapshot: exact GP variance against the variance off (−σ_f),
 with a float64 GEMM rate measured in the same process (docs/performance.md, "Levers measured for issue 17").
 
-    taskset -c 1 python benchmarks/variance_share.py results/thesis/cartpole_swingup_angle_k1_tp_thesis_s1.h5 10
+    taskset -c 1 python benchmarks/variance_share.py results/thesis/cartpole_swingup_angle_k1_tp_thesis_s1.h5 10 1e-2,1e-4,1e-6
     python benchmarks/variance_share.py results/thesis/cartpole_swingup_angle_k1_tp_thesis_s1.h5 10   # all cores
 
 Steps: 20 TP policy steps (P = 300, thesis estimator) per timing, best of 3 after a compiling call.
@@ -31,4 +31,13 @@ f = jax.jit(lambda a, b: a @ b); f(a, b).block_until_ready()
 t = time.perf_counter(); [f(a, b).block_until_ready() for _ in range(20)]; g = 2*1200*M*M*20/(time.perf_counter()-t)/1e9
 exact = timeit(rcfg, est)
 off = timeit(dataclasses.replace(rcfg, model_variance=False), est)
-print(f"N={snap.num_points} M={M} P={rcfg.num_particles}: GEMM {g:.1f} Gflop/s; TP step exact {exact*1e3:.1f} ms, variance off {off*1e3:.1f} ms; variance share {(exact-off)/exact:.0%}")
+print(f"N={snap.num_points} M={M} P={rcfg.num_particles}: GEMM {g:.1f} Gflop/s; TP step exact {exact*1e3:.1f} ms, "
+      f"variance off {off*1e3:.1f} ms; variance share {(exact-off)/exact:.0%}")
+from pipps.gp.lowrank import low_rank_posterior
+
+for tol in [float(t) for t in (sys.argv[3].split(",") if len(sys.argv) > 3 else [])]:
+    exact_model = snap.model
+    snap.model, ranks = low_rank_posterior(exact_model, snap.data, tol)
+    t_lr = timeit(rcfg, est)
+    snap.model = exact_model
+    print(f"  low-rank tol {tol:g} (ranks {ranks.tolist()}): TP step {t_lr*1e3:.1f} ms, {exact / t_lr:.2f}x the exact step")

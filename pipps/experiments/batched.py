@@ -85,6 +85,8 @@ def check_batchable(cfgs: Sequence[ExperimentConfig]) -> None:
     if base.is_pilco or base.fixed_seed:
         raise ValueError(f"batched: method {base.method!r} optimises with per-seed quasi-Newton line searches and "
                          "runs unbatched; the batched mode takes the stochastic-gradient particle methods")
+    if base.variance_tol > 0:
+        raise ValueError("batched: variance_tol > 0 (the low-rank variance) has per-seed ranks and runs unbatched")
 
 
 def _take(tree, i):

@@ -105,6 +105,9 @@ class ExperimentConfig:
     noise_boost_tp: float = 100.0  # +σ_n factor on σ_n² for TP
     noise_boost_gtp: float = 25.0  # +σ_n factor for GTP
     progress_chunk: int = 50  # policy steps per compiled call (progress granularity)
+    # GP variance: 0 = exact; > 0 = the certified low-rank form (pipps.gp.lowrank) with its error below
+    # variance_tol·σ_n² at every input, full-GP trials only (FITC trials stay exact); docs/performance.md
+    variance_tol: float = 0.0
     # PILCO
     pilco_linesearches: int | None = None  # None: PILCO's budget for the task (tasks.md §2, §3.7)
     # GP model
@@ -202,6 +205,7 @@ def validate(c: ExperimentConfig) -> None:
     _need(finite(c.momentum) and 0 <= c.momentum < 1, "momentum", f"must lie in [0, 1), got {c.momentum!r}")
     _need(c.estimator_choices in ("thesis", "library"), "estimator_choices",
           f"choose thesis or library, got {c.estimator_choices!r}")
+    _need(finite(c.variance_tol) and c.variance_tol >= 0, "variance_tol", f"must be >= 0, got {c.variance_tol!r}")
     for name in ("noise_boost_tp", "noise_boost_gtp"):
         v = getattr(c, name)
         _need(finite(v) and v > 0, name, f"must be > 0, got {v!r}")

@@ -354,6 +354,17 @@ def record_gp(trial: TrialResult, post, info) -> None:
         trial.gp_info["inducing"] = np.asarray(post.inputs)
 
 
+def planning_model(cfg: ExperimentConfig, post, data, info):
+    """The model the policy is optimised on: the posterior itself, or with ``variance_tol > 0`` and a
+    full GP under a particle method that uses the variance, its certified low-rank form
+    (:mod:`pipps.gp.lowrank`). Returns ``(model, ranks or None)``."""
+    if cfg.variance_tol <= 0 or cfg.is_pilco or info.sparse or cfg.method == "tp-sf":
+        return post, None
+    from pipps.gp.lowrank import low_rank_posterior
+
+    return low_rank_posterior(post, data, cfg.variance_tol, jitter=info.posterior_jitter)
+
+
 def stored_trajectory(trial: TrialResult) -> Trajectory:
     """A stored trial as the :class:`Trajectory` it was (device arrays), e.g. for :func:`training_pairs`."""
     return Trajectory(*(jnp.asarray(getattr(trial, n)) for n in Trajectory._fields))
@@ -443,7 +454,8 @@ def run_experiment(
                 progress(dict(phase="gp", trial=i, points=int(sum(len(a) for a in inputs))))
                 post, fit_state, info = fit(k_gp, data, prev=fit_state, config=gpc)
                 t1 = time.perf_counter()
-                policy, trace, diagnostics, predicted = programs.optimizer(k_opt, policy, post, progress)
+                model, ranks = planning_model(cfg, post, data, info)
+                policy, trace, diagnostics, predicted = programs.optimizer(k_opt, policy, model, progress)
                 if not np.all(np.isfinite(flat(policy))):  # the update steps refuse NaN; a guard for the QN paths
                     raise FloatingPointError(f"trial {i}: the optimised policy parameters are not finite")
                 t2 = time.perf_counter()
@@ -453,6 +465,9 @@ def run_experiment(
                 trial = _trial_from(i, "learned", traj, evals, flat(policy), timings)
                 timings.update(gp=t1 - t0, optimize=t2 - t1, trial=t3 - t2, evaluate=time.perf_counter() - t3)
                 record_gp(trial, post, info)
+                if ranks is not None:
+                    trial.gp_info["variance_ranks"] = ranks
+                    trial.gp_info["variance_bound"] = np.asarray(model.bound)
                 trial.opt_trace, trial.diagnostics, trial.predicted = trace, diagnostics, predicted
             timings["total"] = time.perf_counter() - t0
             x_in, y_out = training_pairs(task, traj)

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from pipps.gp.kernel import se_ard_batched
+from pipps.gp.lowrank import LowRankPosterior, low_rank_quad
 from pipps.gp.types import GPPosterior
 
 
@@ -46,11 +47,15 @@ def noise_variance(model) -> jax.Array:
 PRECISIONS = ("float64", "float32")
 
 
-def _gp_output(post: GPPosterior, z: jax.Array, variance: bool, jacobian: bool, precision: str) -> ModelOutput:
+def _gp_output(post, z: jax.Array, variance: bool, jacobian: bool, precision: str) -> ModelOutput:
     ks = se_ard_batched(post.hyper, z, post.inputs)  # (E, P, M)
     mean = jnp.einsum("epm,em->pe", ks, post.beta)
     var = jac_mean = jac_var = None
-    if variance:
+    if variance and isinstance(post, LowRankPosterior):  # the certified low-rank form (pipps.gp.lowrank)
+        quad, w = low_rank_quad(post, ks)
+        raw = post.hyper.signal_variance[None, :] - quad.T
+        var = jnp.maximum(raw, 0.0)
+    elif variance:
         if precision == "float32":  # the O(P·E·M²) product alone in single precision (2× the flops/s)
             low = jnp.float32
             w = jnp.einsum("emn,epn->epm", post.inv.astype(low), ks.astype(low)).astype(ks.dtype)
@@ -106,7 +111,7 @@ def model_output(model, z: jax.Array, *, variance: bool, jacobian: bool, precisi
     """
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-    if isinstance(model, GPPosterior):
+    if isinstance(model, (GPPosterior, LowRankPosterior)):
         if z.ndim != 2 or z.shape[1] != model.inputs.shape[1]:
             raise ValueError(f"model input must have shape (P, {model.inputs.shape[1]}), got {z.shape}")
         return _gp_output(model, z, variance, jacobian, precision)

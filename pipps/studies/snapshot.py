@@ -36,6 +36,7 @@ class Snapshot:
     policy: object  # policy pytree at the start of the trial's optimisation
     model: GPPosterior  # the trial's model
     num_points: int  # real GP training points
+    data: object = None  # the padded GPData the model was built from
     programs: dict = dataclasses.field(default_factory=dict, repr=False)  # compiled study programs, reused
 
     def program(self, key, build):
@@ -96,7 +97,7 @@ def load_snapshot(path: str | os.PathLike, trial: int) -> Snapshot:
         raise FloatingPointError(f"the posterior Cholesky of trial {trial} failed on rebuilding")
     _, unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task))
     policy = unravel(jnp.asarray(result.trials[trial - 1].policy))
-    return Snapshot(str(path), trial, cfg, task, policy, model, int(sum(len(a) for a in xs)))
+    return Snapshot(str(path), trial, cfg, task, policy, model, int(sum(len(a) for a in xs)), data)
 
 
 def pilco_direction(snap: Snapshot) -> jax.Array:

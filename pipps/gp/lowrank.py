@@ -1,0 +1,115 @@
+"""A full-GP posterior whose predictive variance keeps only the directions it needs, with a
+certificate (issue 17; docs/performance.md, "The certified low-rank variance").
+
+For one output with ``K = U diag(λ) Uᵀ`` on the real (unpadded) points and ``σ² = σ_n² + jitter``,
+
+    A = (K + σ²I)⁻¹ = P/σ² − U diag(d) Uᵀ,    d_i = λ_i / (σ² (λ_i + σ²)),
+
+with P the projector on the real points. The predictive variance ``σ_f² − kᵀAk`` and the product
+``w = A k`` the Jacobian needs become ``‖Pk‖²/σ² − Σ_i d_i (u_iᵀk)²`` and ``Pk/σ² − U (d ⊙ Uᵀk)``.
+Keeping the r largest λ overestimates ``kᵀAk`` by ``e = Σ_{i>r} d_i (u_iᵀk)²`` ≥ 0, and since
+``Σ_i (u_iᵀk)²/λ_i = kᵀK⁺k ≤ k(z, z) = σ_f²`` for any input z (the Schur complement of the kernel
+matrix of the data and z is ≥ 0),
+
+    0 ≤ e ≤ max_{i>r} λ_i d_i σ_f² = λ_{r+1}² σ_f² / (σ² (λ_{r+1} + σ²)),
+
+a bound that holds for every particle before any particle is drawn. :func:`low_rank_posterior`
+keeps, per output, the fewest directions whose bound is below ``tol·σ²``; the kept width is
+rounded up to a multiple of ``bucket`` (unused columns have d = 0) so that a run compiles a
+handful of shapes. The work per particle is 4·M·r flops against 2·M² for the exact product.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pipps.gp.kernel import se_ard
+from pipps.gp.types import GPData, GPHyper, GPPosterior
+
+
+class LowRankPosterior(NamedTuple):
+    """A full-GP posterior with the variance in the low-rank form of the module docstring.
+
+    Attributes:
+      hyper, inputs, beta: as in :class:`pipps.gp.GPPosterior` (the mean is exact).
+      basis: per output a (M, R_a) array, the kept eigenvectors of its K (zero on padded rows);
+        R_a is the output's rank rounded up to a multiple of ``bucket``.
+      coef: per output (R_a,), d_i of the kept directions (0 in columns beyond the output's rank).
+      inv_noise: (E,) 1/σ² (σ² = σ_n² + the posterior's jitter).
+      mask: (M,) 1.0 on real rows, 0.0 on padded ones.
+      bound: (E,) the certified bound on the variance error, in units of σ².
+    """
+
+    hyper: GPHyper
+    inputs: jax.Array
+    beta: jax.Array
+    basis: tuple
+    coef: tuple
+    inv_noise: jax.Array
+    mask: jax.Array
+    bound: jax.Array
+
+    @property
+    def noise_variance(self) -> jax.Array:
+        return self.hyper.noise_variance
+
+
+def spectrum_bounds(lam: np.ndarray, sf2: float, s2: float) -> np.ndarray:
+    """``b[r]``: the certified error bound (units of σ²) when the r largest of ``lam`` (descending) are kept."""
+    tail = np.concatenate([lam, [0.0]])  # keeping all: the bound is 0
+    return tail ** 2 * sf2 / (s2 * (tail + s2)) / s2
+
+
+def low_rank_posterior(post: GPPosterior, data: GPData, tol: float, *, jitter=None,
+                       bucket: int = 25) -> tuple[LowRankPosterior, np.ndarray]:
+    """The low-rank form of a full-GP ``post`` trained on ``data`` (module docstring), keeping per
+    output the fewest directions whose certified variance error is below ``tol·σ²``.
+
+    Returns ``(posterior, ranks (E,))``. ``jitter`` (E,): what the posterior's Cholesky added to
+    σ_n² (``FitInfo.posterior_jitter``; default none). Runs on the host, once per trained model.
+    """
+    if not tol > 0:
+        raise ValueError(f"tol must be > 0 (the exact variance is the plain posterior), got {tol}")
+    if post.inputs.shape != data.inputs.shape:
+        raise ValueError("low_rank_posterior needs the full GP posterior of these data (FITC has its own form)")
+    mask = np.asarray(data.mask)
+    x = np.asarray(data.inputs)
+    hyper = post.hyper
+    E, M = np.asarray(post.beta).shape
+    s2 = np.exp(2.0 * np.asarray(hyper.log_noise)) + (np.zeros(E) if jitter is None else np.asarray(jitter))
+    sf2 = np.exp(2.0 * np.asarray(hyper.log_signal))
+    pair = mask[:, None] & mask[None, :]
+    bases, coefs, ranks, bounds = [], [], [], []
+    for a in range(E):
+        k = np.where(pair, np.asarray(se_ard(jnp.asarray(x), jnp.asarray(x), hyper.log_lengthscale[a],
+                                             hyper.log_signal[a])), 0.0)
+        lam, vec = np.linalg.eigh(k)
+        order = np.argsort(lam)[::-1]
+        lam, vec = np.clip(lam[order], 0.0, None), vec[:, order]
+        b = spectrum_bounds(lam, sf2[a], s2[a])
+        r = int(np.argmax(b <= tol))  # b[M] = 0, so some r qualifies
+        bases.append(vec)
+        coefs.append(np.where(np.arange(M) < r, lam / (s2[a] * (lam + s2[a])), 0.0))
+        ranks.append(r)
+        bounds.append(b[r])
+    widths = [int(min(M, max(bucket, -(-r // bucket) * bucket))) for r in ranks]
+    basis = tuple(jnp.asarray(v[:, :n] * mask[:, None]) for v, n in zip(bases, widths))
+    coef = tuple(jnp.asarray(c[:n]) for c, n in zip(coefs, widths))
+    lr = LowRankPosterior(hyper, post.inputs, post.beta, basis, coef, jnp.asarray(1.0 / s2),
+                          jnp.asarray(mask, dtype=post.beta.dtype), jnp.asarray(bounds))
+    return lr, np.asarray(ranks)
+
+
+def low_rank_quad(post: LowRankPosterior, ks: jax.Array):
+    """``(kᵀAk (E, P), A k (E, P, M))`` in the low-rank form; ``ks`` (E, P, M) kernel rows."""
+    km = ks * post.mask[None, None, :]
+    quads, ws = [], []
+    for a, (u, d) in enumerate(zip(post.basis, post.coef)):  # one pair of (P, M) x (M, R_a) products per output
+        c = km[a] @ u  # U_rᵀ k
+        quads.append(jnp.sum(km[a] * km[a], axis=-1) * post.inv_noise[a] - (c * c) @ d)
+        ws.append(km[a] * post.inv_noise[a] - (c * d[None, :]) @ u.T)
+    return jnp.stack(quads), jnp.stack(ws)
