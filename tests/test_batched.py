@@ -61,6 +61,7 @@ def test_batched_seeds_equal_separate_runs(unbatched):
     assert not np.allclose(batched[0].trials[-1].policy, batched[1].trials[-1].policy)
 
 
+@pytest.mark.slow  # ~2.5 min of CI; the GPU path. The mapped path stays in the default run (sweep and resume tests)
 def test_vmapped_seeds_equal_separate_runs(unbatched):
     """The accelerator path: vmapped trials, rollouts and optimiser steps. On CPU (here) the GP
     training's seed axis stays mapped (batched CPU LAPACK deadlocks with two XLA threads; a
