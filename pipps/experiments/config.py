@@ -331,9 +331,18 @@ def from_dict(d: dict[str, Any]) -> ExperimentConfig:
         if isinstance(v, list):
             v = tuple(v)
         values[key] = v
+    for key, value in LEGACY_VALUES.items():  # settings added later: what the code did before they existed
+        values.setdefault(key, value)
     if "protocol" in values:
         return ExperimentConfig(**values)
     return _legacy_protocol(ExperimentConfig(**values, protocol=values.get("preset", "thesis")))
+
+
+#: For settings added after result files were first written: the value that reproduces what the
+#: code did before the setting existed, used when a stored configuration lacks it (so a later
+#: change of a default cannot relabel an old file).
+LEGACY_VALUES: dict[str, Any] = {"variance_tol": 0.0, "balance_steps": 10, "balance_angle": 0.3,
+                                 "balance_position": 0.5, "balanced_fraction": 0.5}
 
 
 def _legacy_protocol(cfg: ExperimentConfig) -> ExperimentConfig:
