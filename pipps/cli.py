@@ -13,6 +13,7 @@ Errors are one line naming the problem (exit status 2 for bad input); ``--debug`
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 
 
@@ -252,12 +253,14 @@ def _cmd_run(args) -> int:
     out = check_output_file(args.out or f"runs/{experiment_name(cfg)}.h5")
     with ResultLock(out):  # held for the whole run: no other process writes this file meanwhile
         found = existing_result(out, cfg)
+        if found.kind == "unfinished" and not found.trials:  # stopped in trial 0: nothing to keep or resume
+            found = dataclasses.replace(found, kind="missing")
         resume = None
         if args.resume:
             if found.kind != "unfinished" or not found.trials:
-                why = {"missing": "there is no file", "complete": "it is already complete",
+                why = {"missing": "there is no file, or it holds no finished trial", "complete": "it is already complete",
                        "other": f"it holds another experiment ({found.detail})",
-                       "damaged": found.detail}.get(found.kind, "it holds no finished trial")
+                       "damaged": found.detail, "unreadable": found.detail}.get(found.kind, "it holds no finished trial")
                 raise UsageError(f"--resume: nothing to continue at {out}: {why}")
             resume = read_result(out, verify=False)
         elif found.kind != "missing" and not args.overwrite:
@@ -265,7 +268,8 @@ def _cmd_run(args) -> int:
                    "unfinished": f"an unfinished run of this experiment ({found.trials} of {cfg.num_trials} "
                                  "trials); --resume continues it",
                    "other": f"another experiment ({found.detail})",
-                   "damaged": f"a file that is not an intact pipps result ({found.detail})"}[found.kind]
+                   "damaged": f"a file that is not an intact pipps result ({found.detail})",
+                   "unreadable": f"a file it cannot read now ({found.detail})"}[found.kind]
             raise UsageError(f"{out} already holds {why}; --overwrite replaces it, or pick another --out")
         if not args.quiet:
             print(f"{cfg.task} / {cfg.table_name} / k={cfg.k:g} / seed {cfg.seed} ({cfg.protocol} preset): "
@@ -342,7 +346,8 @@ def _cmd_sweep(args) -> int:
                        address=args.address, batched=args.batched, batching=args.batching)
     for path, note in report.notes.items():
         print(f"  note: {path}: {note}", file=sys.stderr)
-    print(f"ran {len(report.ran)}, skipped {len(report.skipped)} complete, failed {len(report.failed)} "
+    print(f"ran {len(report.ran)}, skipped {len(report.skipped)} (complete, or running in another process), "
+          f"failed {len(report.failed)} "
           f"in {report.seconds / 60:.1f} min")
     return 1 if report.failed else 0
 
@@ -377,7 +382,16 @@ def _cmd_table(args) -> int:
             summaries.append(read_summary(p))
         except ResultError as err:
             skipped.append(str(err))
-    counted = judge([s for s in summaries if not counts(s["config"], args.preset, args.custom)])
+    counted, unjudged = [], set()
+    for s in summaries:
+        if counts(s["config"], args.preset, args.custom):
+            continue
+        try:
+            counted += judge([s])
+        except ResultError as err:  # a legacy file whose evaluation does not re-simulate
+            skipped.append(str(err))
+            unjudged.add(s["path"])
+    summaries = [s for s in summaries if s["path"] not in unjudged]
     resimulated = [s for s in counted if s.get("resimulated")]
     printed = 0
     for t in tables:

@@ -462,3 +462,27 @@ def test_a_sweep_runs_through_a_two_node_ray_cluster_on_loopback(tmp_path):
                 assert verify_result(p)[0] == "complete"
     finally:
         subprocess.run([*ray, "stop", "--force"], env=env, capture_output=True, timeout=120)
+
+
+def test_review_mends(fake_loop, tmp_path, capsys):
+    """Found in review: an int and a float setting are one experiment and one name; a legacy quick file
+    with a --set reads as quick; a run stopped in trial 0 is simply run again; a file another
+    configuration holds stops a sweep as bad input (exit 2)."""
+    a = resolve_config("thesis", "cartpole_swingup", k=1, policy_evals=7)
+    b = resolve_config("thesis", "cartpole_swingup", k=1.0, policy_evals=7)
+    assert same_experiment(a, b) and experiment_name(a) == experiment_name(b) and config_hash(a) == config_hash(b)
+    c = resolve_config("thesis", "cartpole_swingup", k=1.0000001)
+    assert experiment_name(c) != experiment_name(resolve_config("thesis", "cartpole_swingup"))
+    quick = {k: v for k, v in resolve_config("quick", "cartpole_swingup", policy_evals=7).to_dict().items()
+             if k != "protocol"}
+    assert from_dict(quick).protocol == "quick"
+    out = tmp_path / "x.h5"
+    cfg = resolve_config("thesis", "cartpole_swingup")
+    write_result(out, ExperimentResult(cfg, [], "failed", "KeyboardInterrupt"))
+    assert cli("run", "--quiet", "--out", out, capsys=capsys)[0] == 0 and verify_result(out)[0] == "complete"
+    folder = tmp_path / "sweep"
+    other = resolve_config("thesis", "cartpole_swingup", method="tp", k=1.0, seed=0, cost="angle")
+    fake_run_experiment(other.replace(seed=5), on_trial=lambda r: write_result(folder / f"{experiment_name(other)}.h5", r))
+    code, o = cli("sweep", "--table", "4.1", "--k", "1", "--methods", "tp", "--seeds", "1", "--out", folder,
+                  capsys=capsys)
+    assert code == 2 and "holds another configuration" in o.err

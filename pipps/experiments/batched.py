@@ -29,8 +29,8 @@ trial with all of them, so a caller writes each seed's file (the sweep does, ato
 are the batch's: every seed of a batch records the same phase seconds and wall time, and the
 trial timings hold ``batched_seeds``, the batch size. A seed whose optimised policy is not finite
 fails alone (its result says so) and leaves the batch; an error in a batched phase fails every
-seed still running. A batched cell is not resumed part-way: seeds without a complete file run
-from their first trial.
+seed still running. ``resumes`` continues seeds that stopped after the same trial from their
+files, as a single experiment resumes (the sweep groups unfinished seeds so).
 """
 
 from __future__ import annotations
@@ -267,6 +267,8 @@ def run_batched(
             progress(dict(phase="evaluated", trial=i, trials=cfg.num_trials, seeds=len(active),
                           eval_return=float(np.mean([trials[s].eval_return for s in active])),
                           upright=float(np.mean([trials[s].upright_fraction for s in active])),
+                          balanced=float(np.mean([trials[s].balanced_fraction for s in active])),
+                          criterion="balanced" if cfg.task != "unicycle" else "upright",
                           seconds=time.perf_counter() - t0))
             on_trial(results)
     except BaseException as err:  # every seed still running fails with the batch; keep what finished

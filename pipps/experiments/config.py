@@ -106,7 +106,8 @@ class ExperimentConfig:
     noise_boost_gtp: float = 25.0  # +σ_n factor for GTP
     progress_chunk: int = 50  # policy steps per compiled call (progress granularity)
     # GP variance: 0 = exact; > 0 = the certified low-rank form (pipps.gp.lowrank) with its error below
-    # variance_tol·σ_n² at every input, full-GP trials only (FITC trials stay exact); docs/performance.md
+    # variance_tol·σ² (σ² = σ_n² + the posterior's jitter) at every input; full-GP trials only (FITC
+    # trials stay exact); docs/performance.md
     variance_tol: float = 0.0
     # PILCO
     pilco_linesearches: int | None = None  # None: PILCO's budget for the task (tasks.md §2, §3.7)
@@ -349,14 +350,16 @@ def _legacy_protocol(cfg: ExperimentConfig) -> ExperimentConfig:
     """A configuration stored before ``protocol`` existed, with the experiment preset it was built
     from: the one whose protocol it equals (``quick`` runs were stored with ``preset="thesis"``),
     else its task preset (then it departs from that protocol, see :func:`departures`)."""
-    for protocol in PRESET_NAMES:
+    best, fewest = cfg, None
+    for protocol in PRESET_NAMES:  # the preset it departs from least (a quick run with a --set: quick)
         candidate = dataclasses.replace(cfg, protocol=protocol)
         try:
-            if not departures(candidate):
-                return candidate
+            n = len(departures(candidate))
         except ConfigError:
             continue
-    return cfg
+        if fewest is None or n < fewest or (n == fewest and protocol == cfg.preset):
+            best, fewest = candidate, n
+    return best
 
 
 #: The settings that say which table cell and seed an experiment is; every other setting is the protocol's.
@@ -371,6 +374,10 @@ def canonical(cfg: ExperimentConfig) -> dict[str, Any]:
     d = cfg.to_dict()
     if d["cost"] is None:
         d["cost"] = DEFAULT_COST[(cfg.task, cfg.preset)]
+    for name, hint in _field_types().items():  # k=1 and k=1.0 are one experiment (and one hash)
+        v = d[name]
+        if float in typing.get_args(hint) + (hint,) and isinstance(v, int) and not isinstance(v, bool):
+            d[name] = float(v)
     return d
 
 
@@ -408,13 +415,19 @@ def experiment_name(cfg: ExperimentConfig) -> str:
     # "default" for a task with a single cost
     cost = canonical(cfg)["cost"] if len(TASK_COSTS[cfg.task]) > 1 else "default"
     if cfg.cost_scale != 1.0:
-        cost += f"x{cfg.cost_scale:g}"
-    name = f"{cfg.task}_{cost}_k{cfg.k:g}_{cfg.method}_{cfg.protocol}_s{cfg.seed}"
+        cost += f"x{_number(cfg.cost_scale)}"
+    name = f"{cfg.task}_{cost}_k{_number(cfg.k)}_{cfg.method}_{cfg.protocol}_s{cfg.seed}"
     try:
         custom = bool(departures(cfg))
     except ConfigError:  # the protocol cannot express this cell at all
         custom = True
     return f"{name}_c{config_hash(cfg)[:8]}" if custom else name
+
+
+def _number(x: float) -> str:
+    """``x`` short (``1``, ``0.01``, ``16``) where that is exact, else in full (``1.0000001``)."""
+    short = f"{x:g}"
+    return short if float(short) == float(x) else repr(float(x))
 
 
 def config_difference(stored: ExperimentConfig, asked: ExperimentConfig) -> str:

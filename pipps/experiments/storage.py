@@ -122,6 +122,13 @@ class ResultLock:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError as err:
+                if err.errno in (errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOLCK):  # a filesystem without flock
+                    import warnings
+
+                    warnings.warn(f"{self.lock}: this filesystem does not support flock ({err.strerror}); "
+                                  "running without the lock: do not start two sweeps on this folder", stacklevel=2)
+                    self._fd = fd
+                    return self
                 os.close(fd)
                 if err.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                     holder = _read_holder(self.lock)
@@ -173,7 +180,8 @@ def _read_holder(lock: Path) -> str:
 class Existing:
     """What a path holds for a configuration. ``kind``: ``missing``, ``complete`` (this experiment,
     finished), ``unfinished`` (this experiment, ``trials`` of them stored), ``other`` (another
-    experiment; ``detail`` names the settings that differ) or ``damaged`` (``detail`` says why)."""
+    experiment; ``detail`` names the settings that differ), ``damaged`` (``detail`` says why; a sweep sets
+    it aside) or ``unreadable`` (another schema version, or a file another program holds: left alone)."""
 
     kind: str
     trials: int = 0
@@ -189,7 +197,10 @@ def existing_result(path: str | os.PathLike, cfg: ExperimentConfig) -> Existing:
     try:
         status, stored, n = verify_result(path)
     except ResultError as err:
-        return Existing("damaged", detail=str(err))
+        text = str(err)
+        if "schema version" in text or "lock" in text.lower():  # newer pipps, or held open elsewhere: not damage
+            return Existing("unreadable", detail=text)
+        return Existing("damaged", detail=text)
     if not same_experiment(stored, cfg):
         return Existing("other", n, config_difference(stored, cfg))
     if status == "complete" and n == cfg.num_trials:
@@ -231,17 +242,18 @@ def claim_sweep_folder(folder: str | os.PathLike, configs: list[ExperimentConfig
     mine = json.loads(text)  # tuples as lists, as they come back from the file
     if not path.exists():  # a folder from before manifests, or filled by `pipps run`: its files decide
         _check_existing_files(Path(folder), mine)
-    if write:
+    if write:  # written whole to a temporary file, then linked into place: never seen half-written
+        tmp = path.with_name(f".{MANIFEST}.tmp-{os.getpid()}")
         try:
-            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            tmp.write_text(text + "\n")
+            os.link(tmp, path)
+            return
         except FileExistsError:
             pass
         except OSError as err:
             raise OutputError(f"cannot write {path}: {err.strerror or err}") from None
-        else:
-            with os.fdopen(fd, "w") as fh:
-                fh.write(text + "\n")
-            return
+        finally:
+            tmp.unlink(missing_ok=True)
     if not path.exists():
         return
     try:

@@ -75,6 +75,8 @@ def _run_one(cfg: ExperimentConfig, path: str, quiet: bool = True) -> tuple[str,
                 return path, "skipped", "complete (finished by another process)"
             if found.kind == "other":
                 return path, "failed", f"OutputError: {path} holds another configuration ({found.detail})"
+            if found.kind == "unreadable":
+                return path, "failed", f"OutputError: {path} cannot be read now ({found.detail}); left untouched"
             note = ""
             if found.kind == "damaged":
                 note = f"set aside a damaged file as {set_aside(path).name}"
@@ -93,7 +95,7 @@ def plan(
     """Split the grid into (to run or resume, already complete, the trial each of the first
     resumes at: 0 from scratch). Raises ValueError when a file in ``out_dir`` holds another
     configuration than the one the grid maps to it."""
-    from pipps.experiments.storage import existing_result
+    from pipps.experiments.storage import OutputError, existing_result
 
     out = Path(out_dir)
     todo, done, starts, seen = [], [], [], set()
@@ -104,8 +106,10 @@ def plan(
         seen.add(path)
         found = existing_result(path, cfg)
         if found.kind == "other":
-            raise ValueError(f"{path} holds another configuration ({found.detail}); "
-                             "use another output folder, or remove the file to run this one")
+            raise OutputError(f"{path} holds another configuration ({found.detail}); "
+                              "use another output folder, or remove the file to run this one")
+        if found.kind == "unreadable":
+            raise OutputError(f"{path} cannot be read now ({found.detail}); it is left untouched")
         if found.kind == "complete":
             done.append(path)
         else:  # missing or damaged (set aside when run): from scratch; unfinished: resumed
@@ -235,9 +239,10 @@ def _run_batch(cfgs, paths: list[str], batching: str, record) -> list:
                 lock.release()
                 record(path, "skipped", "complete (finished by another process)")
                 continue
-            if found.kind == "other":
+            if found.kind in ("other", "unreadable"):
                 lock.release()
-                record(path, "failed", f"OutputError: {path} holds another configuration ({found.detail})")
+                record(path, "failed", f"OutputError: {path} holds another configuration or cannot be read now "
+                                       f"({found.detail}); left untouched")
                 continue
             if found.kind == "damaged":
                 print(f"{path}: set aside a damaged file as {set_aside(path).name}", file=sys.stderr)

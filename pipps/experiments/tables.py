@@ -173,6 +173,11 @@ def _cell_key(values: dict[str, Any], method: str, cfg: ExperimentConfig) -> boo
     return True
 
 
+#: Re-simulated evaluation returns must equal the stored ones to this relative tolerance: the true
+#: system is deterministic given the keys, so only rounding (another CPU) may separate them.
+RESIM_TOLERANCE = 1e-6
+
+
 def judge(summaries: list[dict[str, Any]], resimulator=None) -> list[dict[str, Any]]:
     """Add both verdicts to result summaries (:func:`pipps.experiments.results.read_summary`), in place:
 
@@ -205,6 +210,12 @@ def judge(summaries: list[dict[str, Any]], resimulator=None) -> list[dict[str, A
                 ret, _, flags = resimulator.trial(result, len(result.trials) - 1)
                 s["resimulated"] = True
                 s["resim_error"] = float(np.max(np.abs(ret - rets)))
+                if not s["resim_error"] <= RESIM_TOLERANCE * max(1.0, float(np.max(np.abs(rets)))):
+                    from pipps.experiments.results import ResultError
+
+                    raise ResultError(f"{s['path']}: re-simulating its final evaluation gives returns that differ from "
+                                      f"the stored ones by {s['resim_error']:.2g}; its physical verdict cannot be "
+                                      "re-judged (another simulator or policy layout?)")
             frac = float(np.mean(flags))
             need = cfg.balanced_fraction
             s["return_success"] = bool(float(np.mean(rets)) < cfg.success_threshold)

@@ -77,7 +77,7 @@ def low_rank_posterior(post: GPPosterior, data: GPData, tol: float, *, jitter=No
     if post.inputs.shape != data.inputs.shape:
         raise ValueError("low_rank_posterior needs the full GP posterior of these data (FITC has its own form)")
     mask = np.asarray(data.mask)
-    x = np.asarray(data.inputs)
+    x = np.asarray(post.inputs)  # the inputs the posterior was built from (cleaned; real rows first)
     hyper = post.hyper
     E, M = np.asarray(post.beta).shape
     s2 = np.exp(2.0 * np.asarray(hyper.log_noise)) + (np.zeros(E) if jitter is None else np.asarray(jitter))
