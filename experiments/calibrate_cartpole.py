@@ -37,6 +37,8 @@ def main(argv=None) -> None:
     ap.add_argument("results", nargs="+", metavar="H5", help="cart-pole result files")
     ap.add_argument("--fresh", type=int, default=0, help="also re-simulate each final policy with N new rollouts")
     ap.add_argument("--fractions", default="0.5,0.8", help="required balanced fractions to report rates at")
+    ap.add_argument("--bounds", default="0.2:0.3,0.3:0.5,0.5:1.0",
+                    help="ANGLE:POSITION pairs (rad, m) to report the final trials' rates at (sensitivity)")
     args = ap.parse_args(argv)
     sim = Resimulator()
     rows = []  # (k, method, seed, trial, mean return, balanced fraction, required fraction, threshold)
@@ -98,6 +100,23 @@ def main(argv=None) -> None:
         rates = [f"{sum(r[5] >= f for r in items)}/{len(items)}" for f in fractions]
         print(f"| {k:g} | {METHODS[m]} | {len(items)} | " + " | ".join(rates)
               + f" | {sum(r[4] < r[7] for r in items)}/{len(items)} |")
+    bounds = [tuple(float(v) for v in b.split(":")) for b in args.bounds.split(",")]
+    print("\nFinal trials: success rate (>= the configured fraction balanced) by the criterion's bounds "
+          "(angle rad : cart m, last 10 states)")
+    print("| k | method | n | " + " | ".join(f"{a:g} : {p:g}" for a, p in bounds) + " |")
+    print("|---|---|---|" + "---|" * len(bounds))
+    by_cell = defaultdict(list)
+    for res, r in finals:
+        by_cell[(r[0], r[1])].append((res, r))
+    for (k, m), items in sorted(by_cell.items()):
+        rates = []
+        for a, p in bounds:
+            ok = 0
+            for res, r in items:
+                _, _, flags = sim.trial(res, len(res.trials) - 1, balance=(res.config.balance_steps, a, p))
+                ok += float(np.mean(flags)) >= r[6]
+            rates.append(f"{ok}/{len(items)}")
+        print(f"| {k:g} | {METHODS[m]} | {len(items)} | " + " | ".join(rates) + " |")
     if args.fresh:
         print(f"\nFinal policies re-simulated with {args.fresh} independent rollouts each:")
         print("| k | method | seed | stored: return, balanced | fresh: return ± SE, balanced | verdict holds |")

@@ -97,24 +97,25 @@ class Resimulator:
     def __init__(self):
         self._programs: dict = {}
 
-    def _program(self, cfg):
+    def _program(self, cfg, balance=None):
         import jax
 
         from pipps.experiments.loop import balance_settings, evaluate_rollouts, init_policy, make_experiment_task
         from jax.flatten_util import ravel_pytree
 
-        key = (cfg.task, cfg.preset, cfg.k, cfg.cost, cfg.cost_scale, cfg.horizon, cfg.policy, cfg.num_basis,
-               balance_settings(cfg))
+        balance = balance_settings(cfg) if balance is None else tuple(balance)
+        key = (cfg.task, cfg.preset, cfg.k, cfg.cost, cfg.cost_scale, cfg.horizon, cfg.policy, cfg.num_basis, balance)
         if key not in self._programs:
             task = make_experiment_task(cfg)
             unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task))[1]
-            run = jax.jit(lambda keys, flat: evaluate_rollouts(task, keys, unravel(flat), balance_settings(cfg)))
+            run = jax.jit(lambda keys, flat: evaluate_rollouts(task, keys, unravel(flat), balance))
             self._programs[key] = run
         return self._programs[key]
 
-    def trial(self, result, index: int, *, fresh: int | None = None, seed: int = 0):
+    def trial(self, result, index: int, *, fresh: int | None = None, seed: int = 0, balance=None):
         """``(returns, upright, balanced)`` (numpy) of trial ``index``'s policy: its own evaluation
-        rollouts, or ``fresh`` rollouts with keys from ``seed`` (independent of the experiment's)."""
+        rollouts, or ``fresh`` rollouts with keys from ``seed`` (independent of the experiment's).
+        ``balance = (steps, angle, position)`` judges with other bounds than the configuration's."""
         import jax
         import jax.numpy as jnp
 
@@ -126,5 +127,5 @@ class Resimulator:
             keys = evaluation_keys(cfg, index)
         else:
             keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), 1_000_003 + index), fresh)
-        out = self._program(cfg)(keys, jnp.asarray(trial.policy))
+        out = self._program(cfg, balance)(keys, jnp.asarray(trial.policy))
         return tuple(np.asarray(a) for a in jax.device_get(out))
