@@ -590,7 +590,7 @@ def test_sweep_killed_with_sigkill_resumes(tmp_path):
     killed = tmp_path / "killed"
     proc = subprocess.Popen([sys.executable, "-m", "pipps.cli", "sweep", *args, *sets, "--out", str(killed)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    first = killed / "cartpole_swingup_angle_k1_tp_thesis_s0.h5"
+    first = killed / f"{experiment_name(tiny(method='tp', k=1.0, cost='angle', seed=0))}.h5"
     deadline = time.time() + 600
     while not is_complete(first) and time.time() < deadline and proc.poll() is None:
         time.sleep(0.2)
@@ -601,5 +601,7 @@ def test_sweep_killed_with_sigkill_resumes(tmp_path):
     full = tmp_path / "full"
     subprocess.run([sys.executable, "-m", "pipps.cli", "sweep", *args, *sets, "--out", str(full)], check=True,
                    capture_output=True)
-    for name in os.listdir(full):
-        assert_same_results(read_result(full / name), read_result(killed / name))
+    assert sorted(p.name for p in full.glob("*.h5")) == sorted(p.name for p in killed.glob("*.h5"))
+    assert first.name in os.listdir(full)
+    for path in full.glob("*.h5"):  # the folder also holds its sweep manifest
+        assert_same_results(read_result(path), read_result(killed / path.name))
