@@ -110,3 +110,17 @@ def test_resimulation_reproduces_a_stored_evaluation_exactly_and_judges_it():
     assert s["return_success"] and not s["success"] and s["final_balanced"] == float(np.mean(flags)) == 0.0
     with pytest.raises(ValueError, match="random trial"):
         Resimulator().trial(result, 0)
+
+
+def test_the_calibration_script_lists_the_policies_the_two_rules_disagree_on(capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("calibrate_cartpole",
+                                                  RESULTS.parents[1] / "experiments/calibrate_cartpole.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    script.main([str(RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5"), "--bounds", "0.3:0.5"])
+    out = capsys.readouterr().out
+    assert "15 learned policies from 1 files (re-simulated returns differ from the stored ones by at most 0.0e+00)" in out
+    assert "| TP | 4 | 15 | 13.90 | 0.00 | no | yes |" in out  # swings up, never balanced, passes the return rule
+    assert "| 1 | TP | 1 | 0/1 | 0/1 | 1/1 |" in out
