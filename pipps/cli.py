@@ -382,12 +382,14 @@ def _cmd_table(args) -> int:
             summaries.append(read_summary(p))
         except ResultError as err:
             skipped.append(str(err))
-    counted, unjudged = [], set()
+    from pipps.experiments.criteria import Resimulator
+
+    counted, unjudged, resimulator = [], set(), Resimulator()  # one compiled evaluation per configuration shape
     for s in summaries:
         if counts(s["config"], args.preset, args.custom):
             continue
         try:
-            counted += judge([s])
+            counted += judge([s], resimulator)
         except ResultError as err:  # a legacy file whose evaluation does not re-simulate
             skipped.append(str(err))
             unjudged.add(s["path"])
