@@ -503,10 +503,12 @@ def _cmd_study(args) -> int:
     except (ValueError, FileNotFoundError, ResultError) as err:
         print(f"pipps study {args.study}: error: {err}", file=sys.stderr)
         return 2
+    from pipps.studies import figures
+
     out = args.out or f"study_{args.study}.h5"
     rrd = args.rrd or str(Path(out).with_suffix(".rrd"))
     g.write_study(out, result)
-    (g.record_landscape if landscape else g.record_variance)(result, rrd)
+    (figures.record_landscape if landscape else figures.record_variance)(result, rrd)
     print(g.landscape_table(result) if landscape else g.variance_table(result))
     print(f"\nwrote {out} and {rrd} ({result.seconds:.0f} s)")
     return 0
@@ -535,9 +537,11 @@ def _cmd_bench(args) -> int:
     except (ValueError, FileNotFoundError, ResultError) as err:
         print(f"pipps bench: error: {err}", file=sys.stderr)
         return 2
+    from pipps.studies.figures import record_bench
+
     rrd = args.rrd or str(Path(args.out).with_suffix(".rrd"))
     b.write_bench(args.out, result)
-    b.record_bench(result, rrd)
+    record_bench(result, rrd)
     print(b.bench_table(result))
     print(f"\nwrote {args.out} and {rrd} ({result.seconds:.0f} s)")
     return 0
