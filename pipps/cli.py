@@ -369,7 +369,7 @@ def _result_paths(items):
 
 def _cmd_table(args) -> int:
     from pipps.experiments.results import ResultError, read_summary
-    from pipps.experiments.tables import TABLES, collect, counts, get_table, judge, render_curves, render_table
+    from pipps.experiments.tables import TABLES, collect, counts, get_table, judge_counted, render_curves, render_table
 
     paths = _result_paths(args.results)
     try:
@@ -382,17 +382,8 @@ def _cmd_table(args) -> int:
             summaries.append(read_summary(p))
         except ResultError as err:
             skipped.append(str(err))
-    from pipps.experiments.criteria import Resimulator
-
-    counted, unjudged, resimulator = [], set(), Resimulator()  # one compiled evaluation per configuration shape
-    for s in summaries:
-        if counts(s["config"], args.preset, args.custom):
-            continue
-        try:
-            counted += judge([s], resimulator)
-        except ResultError as err:  # a legacy file whose evaluation does not re-simulate
-            skipped.append(str(err))
-            unjudged.add(s["path"])
+    counted, unjudged = judge_counted(summaries, args.preset, args.custom)
+    skipped += unjudged.values()  # legacy files whose evaluation does not re-simulate
     summaries = [s for s in summaries if s["path"] not in unjudged]
     resimulated = [s for s in counted if s.get("resimulated")]
     printed = 0
