@@ -415,13 +415,13 @@ def band(rec, c: Chart, name: str, x, lo, hi, color) -> None:
     rec.log(f"{c.path}/data/{name}", rr.LineStrips2D(strips, colors=[color], radii=[1.0], draw_order=[5.0]), static=True)
 
 
-def note(rec, c: Chart, name: str, text: str, *, corner: str = "top-right") -> None:
-    """A line of text inside the plot box, in a corner (for what the axes cannot show, e.g. an off-scale series)."""
+def note(rec, c: Chart, name: str, text: str, *, row: int = 0) -> None:
+    """A line of text above the plot box's right end, level with the y axis' label (``row`` 1: just
+    under the box's top edge, inside): what the axes cannot show, e.g. an off-scale series."""
     left, _, bottom, _ = c.margins
     w, h = c.box
-    half = CHAR_WIDTH * len(text) / 2 + 6.0
-    x = left + w - half if corner.endswith("right") else left + half
-    y = -(bottom + h) + TEXT_HEIGHT / 2 + 4.0 if corner.startswith("top") else -bottom - TEXT_HEIGHT / 2 - 4.0
+    x = left + w - CHAR_WIDTH * len(text) / 2 - 6.0
+    y = -(bottom + h) - 16.0 - TEXT_HEIGHT / 2 if row == 0 else -(bottom + h) + TEXT_HEIGHT / 2 + 4.0
     _text(rec, f"{c.path}/notes/{name}", [[x, y]], [text])
 
 

@@ -564,8 +564,9 @@ def _table_figure(figure, paths, args):
         raise UsageError(f"no result of the {args.preset} preset counts in "
                          + (f"table {args.table}" if args.table else "any table"))
     f.record_cells(filled, args.out)
-    return ch.size(f.cells_figure(filled)), f"success rates of {len(judged)} experiments in table(s) " \
-        + ", ".join(t.name for t, _ in filled)
+    n = sum(c.n for _, cells in filled for c in cells)
+    return ch.size(f.cells_figure(filled)), f"success rates in table(s) {', '.join(t.name for t, _ in filled)} " \
+        f"({n} results counted over their cells)"
 
 
 def _default_trial(path) -> int:

@@ -341,7 +341,7 @@ def test_cli_plot_draws_the_committed_unicycle_cells_and_curves(tmp_path, capsys
     assert main(["plot", *map(str, UNICYCLE), "--figure", "cells", "--out", str(out)]) == 0
     rec, _, _ = read_rrd(out)
     assert labels(rec, "/cells/table_4_4/data/tp/counts") == [f"{len(UNICYCLE)}/{len(UNICYCLE)}"]
-    assert "success rates of 4 experiments in table(s) 4.4" in capsys.readouterr().out
+    assert "success rates in table(s) 4.4 (4 results counted over their cells)" in capsys.readouterr().out
 
 
 def test_cli_plot_draws_a_study_file_with_its_own_figure(tmp_path):

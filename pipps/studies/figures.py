@@ -111,7 +111,7 @@ def record_landscape(r: LandscapeResult, out: str | Path) -> Path:
             ch.points(rec, c, f"{n}_points", r.deltas, var, _color(n), size=2.5)
         for k, (n, e) in enumerate(sorted(hidden.items())):
             ch.note(rec, b, f"off_scale_{n}", f"▲▼ {_label(n)} off scale: |ĝ·d| up to {_sci(e)}",
-                    corner="top-right" if k == 0 else "bottom-right")
+                    row=k)
     return Path(out)
 
 
@@ -162,7 +162,7 @@ def record_variance(r: VarianceResult, out: str | Path) -> Path:
                 ch.line(rec, c, "one_over_P", P, v0 * P[0] / P, ch.GREY, width=0.9, dash=True, order=3.0)
             for k, (n, v) in enumerate(sorted(hidden[di].items())):
                 ch.note(rec, c, f"off_scale_{n}", f"{_label(n)} off scale: {_sci(np.nanmin(v))} to {_sci(np.nanmax(v))}",
-                        corner="top-right" if k == 0 else "bottom-left")
+                        row=k)
         if "tp" in r.samples:
             c = fig.charts[-1]
             for di in range(len(r.deltas)):
@@ -220,5 +220,5 @@ def record_bench(r, out: str | Path) -> Path:
                     order=3.0)
             for k, (n, v) in enumerate(sorted(hidden[di].items())):
                 ch.note(rec, c, f"off_scale_{n}", f"{_label(n)} off scale: MSE {_sci(np.nanmin(v))} to {_sci(np.nanmax(v))}",
-                        corner="top-right" if k == 0 else "bottom-left")
+                        row=k)
     return Path(out)
