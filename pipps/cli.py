@@ -59,6 +59,11 @@ SWEEP_OWN_OPTIONS = {"task": "--table", "method": "--methods", "k": "--k", "seed
                      "preset": "--preset", "protocol": "--preset"}
 
 
+#: what ``pipps plot --figure`` draws: of experiment results, then of a study file
+FIGURES = ("overview", "cells", "curves", "diagnostics", "landscape", "variance", "bench")
+_STUDY_FIGURES = ("landscape", "variance", "bench")
+
+
 class UsageError(ValueError):
     """Bad command-line input; the message is printed as one line."""
 
@@ -156,11 +161,28 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also count results whose settings depart from the preset (each table names them)")
     tb.add_argument("--curves", action="store_true", help="also print every result's evaluated return per trial")
 
-    pl = sub.add_parser("plot", help="write a rerun recording (.rrd) of results; --png renders it")
-    pl.add_argument("results", nargs="+", help="result files or folders")
+    pl = sub.add_parser("plot", help="write a rerun recording (.rrd) of results or a study; --png renders it",
+                        description="Writes a rerun recording of experiment results (files or folders) or of one study "
+                                    "file (pipps study / pipps bench output). --figure picks what it shows; the "
+                                    "figures other than overview are drawn for a paper (labelled axes, no viewer "
+                                    "panels) and docs/experiments.md says which thesis figure each corresponds to.")
+    pl.add_argument("results", nargs="+", help="result files or folders, or one study file")
+    pl.add_argument("--figure", default=None, choices=FIGURES,
+                    help="overview (default for results: the interactive four-panel recording), cells (success rate "
+                         "with 95%% interval per method against k, thesis' rates marked), curves (evaluated return "
+                         "per trial of each table cell: median, quartiles, seeds), diagnostics (final-trial predictions, "
+                         "k_LR and gradient variances per step); landscape, variance, bench (a study file's figure, "
+                         "its default)")
+    pl.add_argument("--table", default=None, help="cells/curves: the table whose cells to draw (curves needs it when the "
+                                                   "results fill cells of more than one table)")
+    pl.add_argument("--preset", default="thesis", choices=PRESET_NAMES,
+                    help="cells/curves: count the results of this experiment preset, as pipps table does")
+    pl.add_argument("--custom", action="store_true",
+                    help="cells/curves: also count results whose settings depart from the preset")
     pl.add_argument("--out", default="pipps.rrd", help="recording to write")
     pl.add_argument("--png", default=None, help="also render the recording to this PNG (needs xvfb-run)")
-    pl.add_argument("--size", default="1600x1000", help="PNG window size WxH")
+    pl.add_argument("--size", default=None,
+                    help="PNG window size WxH (default: the figure's own layout; 1600x1000 for the overview)")
 
     st = sub.add_parser("study", help="gradient studies on a policy snapshot from a result file (docs/gradients.md)")
     studies = st.add_subparsers(dest="study", required=True)
@@ -369,7 +391,7 @@ def _result_paths(items):
 
 def _cmd_table(args) -> int:
     from pipps.experiments.results import ResultError, read_summary
-    from pipps.experiments.tables import TABLES, collect, counts, get_table, judge, render_curves, render_table
+    from pipps.experiments.tables import TABLES, collect, counts, get_table, judge_counted, render_curves, render_table
 
     paths = _result_paths(args.results)
     try:
@@ -382,17 +404,8 @@ def _cmd_table(args) -> int:
             summaries.append(read_summary(p))
         except ResultError as err:
             skipped.append(str(err))
-    from pipps.experiments.criteria import Resimulator
-
-    counted, unjudged, resimulator = [], set(), Resimulator()  # one compiled evaluation per configuration shape
-    for s in summaries:
-        if counts(s["config"], args.preset, args.custom):
-            continue
-        try:
-            counted += judge([s], resimulator)
-        except ResultError as err:  # a legacy file whose evaluation does not re-simulate
-            skipped.append(str(err))
-            unjudged.add(s["path"])
+    counted, unjudged = judge_counted(summaries, args.preset, args.custom)
+    skipped += unjudged.values()  # legacy files whose evaluation does not re-simulate
     summaries = [s for s in summaries if s["path"] not in unjudged]
     resimulated = [s for s in counted if s.get("resimulated")]
     printed = 0
@@ -427,15 +440,75 @@ def _cmd_table(args) -> int:
     return 0
 
 
+def _study_kind(path) -> str | None:
+    """The study a file holds (landscape, variance, bench), or None for anything else."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            kind = f.attrs.get("study")
+    except OSError:
+        return None
+    return str(kind) if kind is not None else None
+
+
 def _cmd_plot(args) -> int:
-    from pipps.experiments.plot import check_viewer, record, render_png
-    from pipps.experiments.results import ResultError, read_result
+    from pipps.experiments.plot import check_viewer, render_png
 
     try:
         paths = _result_paths(args.results)
     except FileNotFoundError as err:
         print(f"pipps plot: error: {err}", file=sys.stderr)
         return 2
+    studies = [k for k in map(_study_kind, paths) if k is not None]
+    if studies:
+        if len(paths) != 1:
+            raise UsageError(f"a study file is drawn alone; got {len(paths)} files")
+        figure = args.figure or studies[0]
+        if figure != studies[0]:
+            raise UsageError(f"{paths[0]} holds a {studies[0]} study; its figure is --figure {studies[0]}")
+    else:
+        figure = args.figure or "overview"
+        if figure in _STUDY_FIGURES:
+            raise UsageError(f"--figure {figure} draws a study file (pipps study {figure} / pipps bench output)")
+    if args.table is not None and figure not in ("cells", "curves"):
+        raise UsageError("--table selects the cells of --figure cells or curves")
+    if args.png:
+        check_viewer()  # before the recording is written: a missing viewer is named, not a traceback
+    draw = _study_figure if studies else (_result_figure if figure in ("overview", "diagnostics") else _table_figure)
+    size, what = draw(figure, paths, args)
+    print(f"wrote {args.out} ({what})")
+    if args.png:
+        render_png(args.out, args.png, args.size or size)
+        print(f"wrote {args.png}")
+    return 0
+
+
+def _study_figure(figure, paths, args):
+    from pipps import charts as ch
+    from pipps.studies import figures as f
+
+    if figure == "bench":
+        from pipps.studies.bench import read_bench
+
+        result = read_bench(paths[0])
+        fig, _ = f.bench_figure(result)
+        f.record_bench(result, args.out)
+    else:
+        from pipps.studies.gradients import read_study
+
+        result = read_study(paths[0])
+        fig, _ = (f.landscape_figure if figure == "landscape" else f.variance_figure)(result)
+        (f.record_landscape if figure == "landscape" else f.record_variance)(result, args.out)
+    return ch.size(fig), f"the {figure} figure of {paths[0]}"
+
+
+def _result_figure(figure, paths, args):
+    from pipps import charts as ch
+    from pipps.experiments.figures import diagnostics_figure, record_diagnostics
+    from pipps.experiments.plot import group_name, record
+    from pipps.experiments.results import ResultError, read_result
+
     results = []
     for p in paths:
         try:
@@ -443,16 +516,57 @@ def _cmd_plot(args) -> int:
         except ResultError as err:
             print(f"  skipped: {err}", file=sys.stderr)
     if not results:
-        print("pipps plot: error: no complete results to plot", file=sys.stderr)
-        return 2
-    if args.png:
-        check_viewer()  # before the recording is written: a missing viewer is named, not a traceback
-    record(results, args.out)
-    print(f"wrote {args.out} ({len(results)} experiments)")
-    if args.png:
-        render_png(args.out, args.png, args.size)
-        print(f"wrote {args.png}")
-    return 0
+        raise UsageError("no complete results to plot")
+    if figure == "overview":
+        record(results, args.out)
+        return "1600x1000", f"{len(results)} experiments"
+    groups = {}
+    for r in sorted(results, key=lambda r: (group_name(r), r.config.seed)):
+        groups.setdefault(group_name(r), r)  # the lowest seed of each group
+    record_diagnostics(list(groups.items()), args.out)
+    return ch.size(diagnostics_figure(list(groups.items()))), f"the final trials of {len(groups)} experiment groups"
+
+
+def _table_figure(figure, paths, args):
+    from pipps import charts as ch
+    from pipps.experiments import figures as f
+    from pipps.experiments.results import ResultError, read_summary
+    from pipps.experiments.tables import TABLES, cell_summaries, collect, get_table, judge_counted
+
+    summaries = []
+    for p in paths:
+        try:
+            summaries.append(read_summary(p))
+        except ResultError as err:
+            print(f"  skipped: {err}", file=sys.stderr)
+    try:
+        tables = [get_table(args.table)] if args.table else list(TABLES.values())
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    if figure == "curves":
+        filled = [(t, [(c, cell_summaries(t, c, summaries, args.preset, args.custom)) for c in t.cells]) for t in tables]
+        filled = [(t, cells) for t, cells in filled if any(rs for _, rs in cells)]
+        if len(filled) > 1:
+            raise UsageError(f"the results fill cells of tables {', '.join(t.name for t, _ in filled)}: pick one with --table")
+        if not filled:
+            raise UsageError(f"no result of the {args.preset} preset counts in "
+                             + (f"table {args.table}" if args.table else "any table"))
+        table, cells = filled[0]
+        f.record_curves(table, cells, args.out)
+        n = sum(len(rs) for _, rs in cells)
+        return ch.size(f.curves_figure(table, cells)), f"learning curves of {n} experiments in table {table.name}"
+    judged, errors = judge_counted(summaries, args.preset, args.custom)
+    for err in errors.values():
+        print(f"  not counted: {err}", file=sys.stderr)
+    filled = [(t, collect(t, judged, args.preset, args.custom)) for t in tables]
+    filled = [(t, cells) for t, cells in filled if any(c.n for c in cells)]
+    if not filled:
+        raise UsageError(f"no result of the {args.preset} preset counts in "
+                         + (f"table {args.table}" if args.table else "any table"))
+    f.record_cells(filled, args.out)
+    n = sum(c.n for _, cells in filled for c in cells)
+    return ch.size(f.cells_figure(filled)), f"success rates in table(s) {', '.join(t.name for t, _ in filled)} " \
+        f"({n} results counted over their cells)"
 
 
 def _default_trial(path) -> int:
@@ -503,10 +617,12 @@ def _cmd_study(args) -> int:
     except (ValueError, FileNotFoundError, ResultError) as err:
         print(f"pipps study {args.study}: error: {err}", file=sys.stderr)
         return 2
+    from pipps.studies import figures
+
     out = args.out or f"study_{args.study}.h5"
     rrd = args.rrd or str(Path(out).with_suffix(".rrd"))
     g.write_study(out, result)
-    (g.record_landscape if landscape else g.record_variance)(result, rrd)
+    (figures.record_landscape if landscape else figures.record_variance)(result, rrd)
     print(g.landscape_table(result) if landscape else g.variance_table(result))
     print(f"\nwrote {out} and {rrd} ({result.seconds:.0f} s)")
     return 0
@@ -535,9 +651,11 @@ def _cmd_bench(args) -> int:
     except (ValueError, FileNotFoundError, ResultError) as err:
         print(f"pipps bench: error: {err}", file=sys.stderr)
         return 2
+    from pipps.studies.figures import record_bench
+
     rrd = args.rrd or str(Path(args.out).with_suffix(".rrd"))
     b.write_bench(args.out, result)
-    b.record_bench(result, rrd)
+    record_bench(result, rrd)
     print(b.bench_table(result))
     print(f"\nwrote {args.out} and {rrd} ({result.seconds:.0f} s)")
     return 0

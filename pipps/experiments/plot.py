@@ -1,16 +1,20 @@
 """Rerun recordings of experiment results (rerun-sdk; no matplotlib).
 
-:func:`record` writes one ``.rrd`` with a blueprint of four panels:
+:func:`record` writes the *overview*, the recording ``pipps plot`` makes by default, to explore
+interactively: a blueprint of four panels,
 
 * **learning curves** — evaluated return per trial for each (task, method, k, cost) group:
-  the mean over seeds and the mean ± one standard deviation (timeline ``trial``), with the
-  success threshold (x: trial);
-* **predictions** — for one experiment per group, the final trial's predicted particle
-  trajectories of the pole angle (or the PILCO Gaussian's mean ± 2 std) against the real
-  rollout, in the (time, angle) plane;
+  the mean over seeds and the mean ± one standard deviation, with the success threshold (x: trial);
+* **predictions** — for one experiment per group (a tab each), a chart of the final trial's predicted
+  trajectories of the pole angle (particles, or the PILCO Gaussian's mean ± 2 sd) against the real
+  rollout, with time (s) and angle (rad) axes (:func:`pipps.experiments.figures.draw_prediction`);
 * **k_LR per step** and **gradient variances per step** (log₁₀ σ²_RP, σ²_LR), averaged over the
-  final trial's optimizer iterations (x: time step). All panels share one sequence timeline,
-  ``index``, because a rerun time-series view follows the viewer's single active timeline.
+  final trial's optimizer iterations (x: time step).
+
+The time-series panels share one sequence timeline, ``index``, because a rerun time-series view
+follows the viewer's single active timeline; their legends sit in the corner the data leave free.
+The figures for a paper (no viewer chrome, labelled axes, log scales) are in
+:mod:`pipps.experiments.figures` and :mod:`pipps.studies.figures`.
 
 :func:`render_png` renders a recording with rerun's own viewer under ``xvfb-run``.
 """
@@ -26,8 +30,6 @@ import numpy as np
 
 from pipps.experiments.loop import ExperimentResult
 
-#: which model-state component is drawn in the predictions panel, and its label
-ANGLE_INDEX = {"cartpole_swingup": (3, "θ (rad)"), "cartpole_balance": (3, "θ (rad)"), "unicycle": (9, "pitch ψ_f (rad)")}
 #: one sequence timeline for every panel: the trial index in the learning curves, the time step in
 #: the k_LR and variance profiles (a time-series view follows the viewer's one active timeline)
 TIMELINE = "index"
@@ -45,15 +47,20 @@ def group_name(r: ExperimentResult) -> str:
     return f"{c.task}_{cost}_k{c.k:g}_{c.method}".replace("+", "plus").replace(".", "p")
 
 
-def _blueprint():
+def _blueprint(predictions, top: float):
     import rerun.blueprint as rrb
+
+    from pipps import charts as ch
 
     return rrb.Blueprint(
         rrb.Grid(
-            rrb.TimeSeriesView(origin="/curves", name="Evaluated return per trial (mean ± std over seeds)"),
-            rrb.Spatial2DView(origin="/predictions", name="Final-trial predictions vs real rollout (time, angle)"),
-            rrb.TimeSeriesView(origin="/diagnostics/k_lr", name="k_LR per time step (final trial)"),
-            rrb.TimeSeriesView(origin="/diagnostics/log10_variance", name="log10 gradient variance per time step"),
+            rrb.TimeSeriesView(origin="/curves", name="Evaluated return per trial (mean ± std over seeds)",
+                               plot_legend=rrb.PlotLegend(corner="RightTop"), axis_y=rrb.ScalarAxis(range=(0.0, top))),
+            rrb.Tabs(*[ch.view(c, titlebar=True) for c in predictions], name="Final-trial predictions vs real rollout (a tab per group)"),
+            rrb.TimeSeriesView(origin="/diagnostics/k_lr", name="k_LR per time step (final trial)",
+                               plot_legend=rrb.PlotLegend(corner="RightTop"), axis_y=rrb.ScalarAxis(range=(0.0, 1.0))),
+            rrb.TimeSeriesView(origin="/diagnostics/log10_variance", name="log10 gradient variance per time step",
+                               plot_legend=rrb.PlotLegend(corner="LeftBottom")),
         ),
         collapse_panels=True,
     )
@@ -61,23 +68,24 @@ def _blueprint():
 
 def record(results: list[ExperimentResult], out: str | Path) -> Path:
     """Write the recording of ``results`` to ``out`` (.rrd) and return its path."""
-    import rerun as rr
+    from pipps import charts as ch
+    from pipps.experiments.figures import draw_prediction, prediction_chart
 
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    rec = rr.RecordingStream("pipps")
-    rr.save(out, default_blueprint=_blueprint(), recording=rec)
     groups: dict[str, list[ExperimentResult]] = defaultdict(list)
     for r in results:
         groups[group_name(r)].append(r)
-    for gi, (name, rs) in enumerate(sorted(groups.items())):
-        color = _PALETTE[gi % len(_PALETTE)]
-        _log_curves(rec, name, rs, color)
-        _log_predictions(rec, name, rs[0], color, offset=gi)
-        _log_diagnostics(rec, name, rs[0], color)
-    rec.flush()
-    rec.disconnect()
-    return out
+    groups = dict(sorted(groups.items()))
+    predictions = [prediction_chart(f"predictions/{name}", f"{name}, seed {rs[0].config.seed}: final trial", rs[0], (700.0, 400.0))
+                   for name, rs in groups.items()]
+    top = 1.05 * max(max(t.eval_return for t in r.trials) for r in results)
+    with ch.recording(out, "pipps", _blueprint(predictions, top)) as rec:
+        for gi, ((name, rs), c) in enumerate(zip(groups.items(), predictions)):
+            color = _PALETTE[gi % len(_PALETTE)]
+            _log_curves(rec, name, rs, color)
+            ch.draw_axes(rec, c)
+            draw_prediction(rec, c, rs[0], color)
+            _log_diagnostics(rec, name, rs[0], color)
+    return Path(out)
 
 
 def curve(rs: list[ExperimentResult]) -> tuple[np.ndarray, np.ndarray]:
@@ -106,38 +114,6 @@ def _log_curves(rec, name: str, rs: list[ExperimentResult], color) -> None:
         rec.log(f"curves/{name}/hi", rr.Scalars([mean[i] + std[i]]))
         if threshold is not None:
             rec.log("curves/success_threshold", rr.Scalars([threshold]))
-
-
-def _log_predictions(rec, name: str, r: ExperimentResult, color, offset: int) -> None:
-    """(time, angle) strips; groups are stacked vertically so they do not overlap."""
-    import rerun as rr
-
-    final = r.trials[-1]
-    if final.predicted is None:
-        return
-    idx, _ = ANGLE_INDEX[r.config.task]
-    dt = 0.1
-    y0 = 8.0 * offset
-    rec.set_time(TIMELINE, sequence=final.index)
-    pred = final.predicted
-    scale = 10.0  # time axis stretch so a 3 s episode is as wide as the angle range
-    if "particles" in pred:
-        x = pred["particles"][:, :, idx]  # (T+1, S)
-        t = np.arange(x.shape[0]) * dt * scale
-        strips = [np.stack([t, y0 - x[:, j]], axis=1) for j in range(x.shape[1])]
-        light = tuple(int(0.4 * c + 150) for c in color)
-        rec.log(f"predictions/{name}/particles", rr.LineStrips2D(strips, colors=[light], radii=[0.02]))
-    else:
-        m, s = pred["mean"][:, idx], np.sqrt(np.maximum(pred["cov"][:, idx, idx], 0.0))
-        t = np.arange(m.shape[0]) * dt * scale
-        rec.log(f"predictions/{name}/gaussian_mean", rr.LineStrips2D([np.stack([t, y0 - m], 1)], colors=[color], radii=[0.04]))
-        band = [np.stack([t, y0 - (m + k * s)], 1) for k in (-2.0, 2.0)]
-        rec.log(f"predictions/{name}/gaussian_2std", rr.LineStrips2D(band, colors=[color], radii=[0.02]))
-    valid = np.concatenate([[True], final.valid.astype(bool)])
-    real = final.states[valid][:, idx if r.config.task != "unicycle" else 10]
-    t = np.arange(real.shape[0]) * dt * scale
-    rec.log(f"predictions/{name}/real", rr.LineStrips2D([np.stack([t, y0 - real], 1)], colors=[(255, 255, 255)], radii=[0.05],
-                                                          labels=[f"{name}: real rollout"]))
 
 
 def _log_diagnostics(rec, name: str, r: ExperimentResult, color) -> None:
@@ -174,11 +150,34 @@ def check_viewer() -> tuple[str, str]:
 
 
 def render_png(rrd: str | Path, png: str | Path, size: str = "1600x1000", timeout: float = 120.0) -> Path:
-    """Render ``rrd`` to ``png`` with ``xvfb-run rerun REC --screenshot-to PNG --window-size WxH``."""
+    """Render ``rrd`` to ``png`` with ``xvfb-run rerun REC --screenshot-to PNG --window-size WxH``.
+
+    The viewer draws at twice the window size; the virtual screen is made four times as large so that
+    its pointer, which rests at the screen's centre, hovers over nothing (a hover draws a tooltip), and
+    ``RUST_LOG=error`` keeps the viewer's startup warnings out of the picture (they show as toasts). The
+    PNG is then stored with a 256-colour palette (figures are flat colours: a few times smaller)."""
+    import os
+
     xvfb, viewer = check_viewer()
-    cmd = [xvfb, "-a", "-s", f"-screen 0 {size.replace('x', 'x')}x24", viewer, str(rrd),
-           "--screenshot-to", str(png), "--window-size", size]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    try:
+        w, h = (int(v) for v in size.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"size must be WIDTHxHEIGHT in pixels, got {size!r}") from None
+    cmd = [xvfb, "-a", "-s", f"-screen 0 {4 * w + 4}x{4 * h + 4}x24", viewer, str(rrd),
+           "--screenshot-to", str(png), "--window-size", f"{w}x{h}"]
+    env = {**os.environ, "RUST_LOG": "error"}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
     if proc.returncode != 0 or not Path(png).exists():
         raise RuntimeError(f"rendering failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    _palette_png(png)
     return Path(png)
+
+
+def _palette_png(png: str | Path) -> None:
+    try:
+        from PIL import Image  # comes with rerun-sdk
+    except ImportError:  # pragma: no cover
+        return
+    with Image.open(png) as im:
+        small = im.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    small.save(png, optimize=True)

@@ -303,6 +303,34 @@ def counts(cfg: ExperimentConfig, preset: str = "thesis", custom: bool = False) 
     return ""
 
 
+def cell_summaries(table: Table, cell: Cell, summaries: list[dict[str, Any]], preset: str | None = "thesis",
+                   custom: bool = False) -> list[dict[str, Any]]:
+    """The summaries that count in ``cell`` (:func:`collect` says which), seeds in order."""
+    values = dict(cell.values)
+    rows = [s for s in summaries if s["config"].task == table.task and _cell_key(values, cell.method, s["config"])
+            and (preset is None or not counts(s["config"], preset, custom))]
+    return sorted(rows, key=lambda s: s["config"].seed)
+
+
+def judge_counted(summaries: list[dict[str, Any]], preset: str = "thesis", custom: bool = False,
+                  ) -> tuple[list[dict[str, Any]], dict[str, str]]:
+    """:func:`judge` the summaries that count for ``preset`` (:func:`counts`), with one re-simulator
+    (one compiled evaluation per configuration shape). Returns the judged summaries and, by path, the
+    error of each legacy file whose evaluation does not re-simulate (left out)."""
+    from pipps.experiments.criteria import Resimulator
+    from pipps.experiments.results import ResultError
+
+    judged, errors, resimulator = [], {}, Resimulator()
+    for s in summaries:
+        if counts(s["config"], preset, custom):
+            continue
+        try:
+            judged += judge([s], resimulator)
+        except ResultError as err:
+            errors[s["path"]] = str(err)
+    return judged, errors
+
+
 def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = "thesis",
             custom: bool = False) -> list[CellResult]:
     """Group result summaries (:func:`pipps.experiments.results.read_summary`) into the table's cells.
@@ -312,9 +340,7 @@ def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = 
     result (the pooled settings are then named in ``mixed``)."""
     out = []
     for cell in table.cells:
-        values = dict(cell.values)
-        rows = [s for s in summaries if s["config"].task == table.task and _cell_key(values, cell.method, s["config"])
-                and (preset is None or not counts(s["config"], preset, custom))]
+        rows = cell_summaries(table, cell, summaries, preset, custom)
         n = len(rows)
         dicts = [_settings(r["config"]) for r in rows]
         mixed = tuple(sorted(k for k in (dicts[0] if dicts else {}) if any(d[k] != dicts[0][k] for d in dicts)))

@@ -228,28 +228,20 @@ def write_bench(path: str | Path, r: BenchResult) -> Path:
     return path
 
 
-def record_bench(r: BenchResult, out: str | Path) -> Path:
-    """Recording: per Δ a 2-d panel of (log₁₀ seconds, log₁₀ MSE), one point per (estimator, P), labelled."""
-    import rerun as rr
-    import rerun.blueprint as rrb
+def read_bench(path: str | Path) -> BenchResult:
+    """Load a bench written by :func:`write_bench` (to re-print its table or re-draw its figure)."""
+    import h5py
 
-    from pipps.studies.gradients import _COLORS
-
-    views = [rrb.Spatial2DView(origin=f"/delta_{i}", name=f"log10 MSE (down) against log10 seconds, Δ = {d:.3g}")
-             for i, d in enumerate(r.deltas)]
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    rec = rr.RecordingStream("pipps-bench")
-    rr.save(out, default_blueprint=rrb.Blueprint(rrb.Grid(*views), collapse_panels=True), recording=rec)
-    for di, es in enumerate(r.entries):
-        for name in dict.fromkeys(e.estimator for e in es):
-            mine = [e for e in es if e.estimator == name and np.isfinite(e.mse) and e.mse > 0]
-            if not mine:
-                continue
-            pts = np.array([[np.log10(e.seconds), -np.log10(e.mse)] for e in mine])  # image y grows downwards
-            rec.log(f"delta_{di}/{name}", rr.Points2D(pts, colors=[_COLORS.get(name, (100, 100, 100))], radii=[0.03],
-                                                     labels=[f"{LABELS.get(name, name)} P={e.particles}" for e in mine]))
-            rec.log(f"delta_{di}/{name}_line", rr.LineStrips2D([pts], colors=[_COLORS.get(name, (100, 100, 100))], radii=[0.01]))
-    rec.flush()
-    rec.disconnect()
-    return out
+    with h5py.File(path, "r") as f:
+        a = f.attrs
+        entries = []
+        for key in sorted(f["entries"]):
+            g = f["entries"][key]
+            cols = {c: g[c][()] for c in ("particles", "seconds", "mse", "mse_se", "nonfinite")}
+            entries.append([BenchEntry(e.decode(), int(cols["particles"][i]), float(cols["seconds"][i]), float(cols["mse"][i]),
+                                       float(cols["mse_se"][i]), int(cols["nonfinite"][i]))
+                            for i, e in enumerate(g["estimator"][()])])
+        return BenchResult(str(a["source"]), int(a["trial"]), f["deltas"][()], f["direction"][()], str(a["direction_kind"]),
+                           f["reference"][()], f["reference_error"][()], str(a["reference_estimator"]),
+                           int(a["reference_particles"]), entries, float(a["mm_seconds"]), f["mm_distance"][()],
+                           int(a["repeats"]), int(a["seed"]), float(a["seconds"]))

@@ -1,0 +1,305 @@
+"""Figures of learning experiments, as rerun recordings (:mod:`pipps.charts`; ``pipps plot --figure``).
+
+* :func:`record_cells` — the success-rate tables as a chart: per table, our rate by the physical
+  criterion with its 95 % Wilson interval for each method against the table's rows (k), the rate by
+  the thesis' return threshold beside it, and the thesis' rate (Tables 4.1–4.4; the thesis has no
+  such figure);
+* :func:`record_curves` — one panel per table cell: the evaluated return per trial over the cell's
+  seeds (median, interquartile band, each seed), with the success threshold (the learning-efficiency
+  plots of thesis Figs. 4.16/4.17, per cell); for the unicycle, whose success is judged on the
+  fraction of upright rollouts, that fraction per trial too;
+* :func:`record_diagnostics` — per experiment group, the final trial's predicted angle trajectories
+  against the real rollout, TP's k_LR per time step and the per-step gradient variances (ours).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipps import charts as ch
+from pipps.experiments.config import METHODS
+from pipps.experiments.loop import ExperimentResult
+from pipps.experiments.tables import Cell, CellResult, Table
+
+PANEL = (480.0, 340.0)
+METHOD_COLORS = {"pilco": (214, 39, 40), "tp": (31, 119, 180), "rp": (255, 127, 14), "rp_fs": (188, 189, 34),
+                 "gr": (148, 103, 189), "gr_fs": (140, 86, 75), "lr": (44, 160, 44), "tp-sf": (23, 190, 207),
+                 "tp+sn": (127, 127, 127), "gtp": (227, 119, 194), "glr": (80, 80, 160), "gtp+sn": (100, 100, 100),
+                 "del": (0, 0, 0)}
+#: one colour per experiment group in the diagnostics figure
+PALETTE = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189), (140, 86, 75)]
+#: which model-state component is the angle drawn in the predictions, the true state's index of it, and its label
+ANGLE_INDEX = {"cartpole_swingup": (3, 3, "pole angle θ (rad)"), "cartpole_balance": (3, 3, "pole angle θ (rad)"),
+               "unicycle": (9, 10, "wheel pitch ψ_f (rad)")}
+
+
+def method_color(method: str):
+    return METHOD_COLORS.get(method, (100, 100, 100))
+
+
+# -- table cells ------------------------------------------------------------------------------------------
+
+
+def cells_figure(tables: list[tuple[Table, list[CellResult]]]) -> ch.Figure:
+    """One panel per table: success rate (y) against the table's rows (x), methods side by side."""
+    charts = []
+    for table, results in tables:
+        methods = _methods_with_results(table, results)
+        x = ch.categorical("observation-noise variance multiplier k" if table.rows[0].startswith("k =") else "",
+                           [row.removeprefix("k = ") for row in table.rows])
+        y = ch.Axis("success rate", -0.04, 1.18, ticks=(0.0, 0.2, 0.4, 0.6, 0.8, 1.0),
+                    tick_labels=("0", "0.2", "0.4", "0.6", "0.8", "1"))
+        title = f"{table.title.split(' — ')[0]}: {table.title.split(' — ')[-1]}"
+        charts.append(ch.chart(f"cells/table_{table.name.replace('.', '_')}", title, x, y,
+                               (max(PANEL[0], 160.0 + 60.0 * len(table.rows) * max(1, len(methods))), PANEL[1] + 40)))
+    width = max(c.size[0] for c in charts)
+    charts = [ch.Chart(c.path, c.title, c.x, c.y, (width, c.size[1]), c.margins) for c in charts]
+    methods = list(dict.fromkeys(m for t, rs in tables for m in _methods_with_results(t, rs)))
+    keys = [*[ch.Key(METHODS[m], method_color(m), "interval") for m in methods],
+            ch.Key("ours: success rate, 95 % Wilson interval, successes/seeds", ch.GREY, "interval")]
+    if any(r.n and r.return_successes is not None for _, rs in tables for r in rs):
+        keys.append(ch.Key("ours by the thesis' return threshold", ch.GREY, "bar"))
+    keys.append(ch.Key("thesis (100 seeds)", ch.GREY, "diamond"))
+    return ch.figure(charts, 1 if len(charts) == 1 else 2, keys, "cells/legend")
+
+
+def _methods_with_results(table: Table, results: list[CellResult]) -> list[str]:
+    return [m for m in table.methods if any(r.cell.method == m and r.n for r in results)]
+
+
+def _dodge(i: int, n: int) -> float:
+    return (i - (n - 1) / 2) * min(0.4, 0.8 / max(n, 1))
+
+
+def record_cells(tables: list[tuple[Table, list[CellResult]]], out: str | Path) -> Path:
+    """Recording of :func:`cells_figure`; ``tables`` pairs each table with :func:`pipps.experiments.tables.collect`'s cells."""
+    fig = cells_figure(tables)
+    with ch.recording(out, "pipps-cells", ch.blueprint(fig)) as rec:
+        ch.draw(rec, fig)
+        for c, (table, results) in zip(fig.charts, tables):
+            methods = _methods_with_results(table, results)
+            by = {(r.cell.row, r.cell.method): r for r in results}
+            for mi, m in enumerate(methods):
+                color = method_color(m)
+                rows = [(ri, by[(row, m)]) for ri, row in enumerate(table.rows) if (row, m) in by]
+                have = [(ri, r) for ri, r in rows if r.n]
+                x = np.array([ri + _dodge(mi, len(methods)) for ri, _ in have])
+                rate = np.array([r.rate for _, r in have])
+                lo = np.array([r.interval[0] for _, r in have])
+                hi = np.array([r.interval[1] for _, r in have])
+                ch.intervals(rec, c, f"{m}/interval", x, lo, hi, color, width=1.3)
+                ch.points(rec, c, f"{m}/rate", x, rate, color, size=4.0)
+                ret = [(xi, r.return_successes / r.n) for xi, (_, r) in zip(x, have) if r.return_successes is not None]
+                top = [max(h, r.return_successes / r.n if r.return_successes is not None else 0.0, r.cell.thesis or 0.0)
+                       for h, (_, r) in zip(hi, have)]  # the label above every mark of its cell
+                ch.text(rec, c, f"{m}/counts", x, top, [f"{r.successes}/{r.n}" for _, r in have], above=True)
+                if ret:
+                    ch.markers(rec, c, f"{m}/return_rate", [a for a, _ in ret], [b for _, b in ret], color, "bar")
+                thesis = [(ri + _dodge(mi, len(methods)), r.cell.thesis) for ri, r in rows if r.cell.thesis is not None]
+                if thesis:
+                    ch.markers(rec, c, f"{m}/thesis", [a for a, _ in thesis], [b for _, b in thesis], color, "diamond")
+    return Path(out)
+
+
+# -- learning curves per cell -----------------------------------------------------------------------------
+
+
+def seed_returns(summaries: list[dict[str, Any]]) -> np.ndarray:
+    """(seeds, trials) evaluated returns over the trials every seed has."""
+    n = min(len(s["eval_return"]) for s in summaries)
+    return np.array([np.asarray(s["eval_return"][:n], dtype=float) for s in summaries])
+
+
+def quartiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(25th percentile, median, 75th percentile) over the seeds (axis 0), per trial (linear interpolation)."""
+    q = np.percentile(values, [25.0, 50.0, 75.0], axis=0)
+    return q[0], q[1], q[2]
+
+
+def curves_figure(table: Table, cells: list[tuple[Cell, list[dict[str, Any]]]]) -> ch.Figure:
+    """A panel per cell of ``table`` that has results, laid out as the table (rows × methods)."""
+    cells = [(c, rs) for c, rs in cells if rs]
+    if not cells:
+        raise ValueError(f"table {table.name}: no cell has results to draw")
+    rows = [row for row in table.rows if any(c.row == row for c, _ in cells)]
+    methods = [m for m in table.methods if any(c.method == m for c, _ in cells)]
+    unicycle = table.task == "unicycle"
+    returns = [seed_returns(rs) for _, rs in cells]
+    cfg = cells[0][1][0]["config"]
+    trials = max(r.shape[1] for r in returns)
+    first = "0" if cfg.num_random == 1 else f"0–{cfg.num_random - 1}"
+    x = ch.Axis(f"trial ({first}: random actions)", -0.5, trials - 0.5)
+    ylabel = "evaluated return (total cost, mean of 30 rollouts)"
+    if unicycle:
+        y = ch.Axis(ylabel, *ch.data_range(returns, log=True), log=True)
+    else:
+        y = ch.Axis(ylabel, *ch.data_range(returns, include=[0.0, cfg.success_threshold], pad=0.04))
+    by = {(c.row, c.method): (c, rs) for c, rs in cells}
+    charts = []
+    for row in rows:
+        for m in methods:
+            c, rs = by.get((row, m), (None, []))
+            name = f"{'' if unicycle else row + ', '}{METHODS[m]}"
+            path = f"curves/{row}_{m}".replace(" ", "").replace("=", "").replace(".", "p").replace("⁻", "m")
+            seeds = f"{len(rs)} seed{'s' if len(rs) != 1 else ''}" if rs else "no results"
+            charts.append(ch.chart(path, f"{name}: {seeds}", x, y, PANEL))
+            if unicycle:
+                charts.append(ch.chart(f"{path}_upright", f"{name}: rollouts upright, {seeds}", x,
+                                       ch.Axis("fraction of the 30 rollouts upright", -0.04, 1.04), PANEL))
+    keys = [ch.Key("median over seeds", ch.BLACK), ch.Key("25–75 % of seeds", ch.lighter(ch.BLACK, 0.8), "band"),
+            ch.Key("each seed", ch.lighter(ch.BLACK, 0.55), "line")]
+    if unicycle:
+        keys.append(ch.Key(f"success: ≥ {cfg.upright_fraction:.0%} of the final trial's rollouts upright", ch.GREY, "dash"))
+    else:
+        keys.append(ch.Key(f"thesis' success threshold: return < {cfg.success_threshold:g} (ours: the physical criterion)",
+                           ch.GREY, "dash"))
+    return ch.figure(charts, len(methods) * (2 if unicycle else 1), keys, "curves/legend")
+
+
+def record_curves(table: Table, cells: list[tuple[Cell, list[dict[str, Any]]]], out: str | Path) -> Path:
+    """Recording of :func:`curves_figure`; ``cells`` pairs each cell with its counted result summaries
+    (:func:`pipps.experiments.tables.cell_summaries`)."""
+    fig = curves_figure(table, cells)
+    with ch.recording(out, "pipps-curves", ch.blueprint(fig)) as rec:
+        ch.draw(rec, fig)
+        charts = iter(fig.charts)
+        rows = [row for row in table.rows if any(c.row == row and rs for c, rs in cells)]
+        methods = [m for m in table.methods if any(c.method == m and rs for c, rs in cells)]
+        lookup = {(c.row, c.method): rs for c, rs in cells if rs}
+        for row in rows:
+            for m in methods:
+                rs = lookup.get((row, m), [])
+                panels = [next(charts)] + ([next(charts)] if table.task == "unicycle" else [])
+                if not rs:
+                    continue
+                cfg = rs[0]["config"]
+                _draw_spread(rec, panels[0], seed_returns(rs), method_color(m))
+                if table.task == "unicycle":
+                    n = min(len(s["upright_fraction"]) for s in rs)
+                    _draw_spread(rec, panels[1], np.array([s["upright_fraction"][:n] for s in rs], dtype=float), method_color(m))
+                    _hline(rec, panels[1], cfg.upright_fraction)
+                else:
+                    _hline(rec, panels[0], cfg.success_threshold)
+    return Path(out)
+
+
+def _draw_spread(rec, c: ch.Chart, values: np.ndarray, color) -> None:
+    t = np.arange(values.shape[1])
+    q25, med, q75 = quartiles(values)
+    ch.band(rec, c, "quartiles", t, q25, q75, ch.lighter(color, 0.8))
+    for i, v in enumerate(values):
+        ch.line(rec, c, f"seeds/{i}", t, v, ch.lighter(color, 0.55), width=0.6)
+    ch.line(rec, c, "median", t, med, color, width=1.6, order=20.0)
+
+
+def _hline(rec, c: ch.Chart, y: float) -> None:
+    ch.line(rec, c, "threshold", [c.x.lo, c.x.hi], [y, y], ch.GREY, width=1.0, dash=True, order=15.0)
+
+
+# -- final-trial diagnostics ----------------------------------------------------------------------------------
+
+
+def group_label(r: ExperimentResult) -> str:
+    """A group's name for a reader: method, k, and the settings that set it apart."""
+    from pipps.tasks.presets import DEFAULT_COST
+
+    c = r.config
+    cost = c.cost or DEFAULT_COST[(c.task, c.preset)]
+    text = f"{METHODS[c.method]}, k = {c.k:g}"
+    if c.task != "unicycle":
+        text += f", {cost} cost"
+    if c.centre_std is None and c.policy == "rbf" and c.policy_init == "start":
+        text += ", start-state centres"
+    return text
+
+
+def diagnostics_figure(groups: list[tuple[str, ExperimentResult]]) -> ch.Figure:
+    """Per group the final trial's predictions; then k_LR and the gradient variances per time step."""
+    charts = [prediction_chart(f"diagnostics/predictions_{gi}",
+                               f"{group_label(r)}, seed {r.config.seed}: final trial {r.trials[-1].index}", r)
+              for gi, (_, r) in enumerate(groups)]
+    with_diag = [(n, r) for n, r in groups if r.trials[-1].diagnostics is not None]
+    if with_diag:
+        T = max(len(r.trials[-1].diagnostics["k_lr"]) for _, r in with_diag)
+        step = ch.Axis("time step t", 0.5, T + 0.5)
+        variances = [r.trials[-1].diagnostics[f"var_{p}"] for _, r in with_diag for p in ("rp", "lr")]
+        charts.append(ch.chart("diagnostics/k_lr", "k_LR per step, mean over the final trial's policy steps", step,
+                               ch.Axis("k_LR: weight of the LR estimate", -0.04, 1.04), PANEL))
+        charts.append(ch.chart("diagnostics/variance", "gradient variance per step (same average)", step,
+                               ch.Axis("variance of the step's gradient", *ch.data_range(variances, log=True), log=True), PANEL))
+    keys = [ch.Key(group_label(r), PALETTE[gi % len(PALETTE)]) for gi, (_, r) in enumerate(groups)]
+    keys += [ch.Key("real rollout", ch.BLACK), ch.Key("predicted particles", ch.lighter(ch.GREY, 0.4)),
+             ch.Key("moment matching: mean ± 2 sd", ch.GREY, "dash")]
+    if with_diag:
+        keys += [ch.Key("σ²_RP: pathwise part", ch.GREY, "line"), ch.Key("σ²_LR: likelihood-ratio part", ch.GREY, "dash")]
+    return ch.figure(charts, min(3, len(charts)), keys, "diagnostics/legend")
+
+
+def prediction_chart(path: str, title: str, r: ExperimentResult, size=PANEL) -> ch.Chart:
+    """A chart of the final trial's angle against time (s), its range fitted to the real rollout and the prediction."""
+    from pipps.experiments.loop import make_experiment_task
+
+    final = r.trials[-1]
+    idx, real_idx, label = ANGLE_INDEX[r.config.task]
+    dt = make_experiment_task(r.config).dt
+    values = [final.states[:, real_idx]]
+    pred = final.predicted or {}
+    if "particles" in pred:
+        values.append(pred["particles"][:, :, idx])
+    elif "mean" in pred:
+        m, s = _gaussian_angle(pred, idx)
+        values += [m - 2 * s, m + 2 * s]
+    T = final.states.shape[0] - 1
+    return ch.chart(path, title, ch.Axis("time (s)", -0.02 * T * dt, 1.02 * T * dt), ch.Axis(label, *ch.data_range(values)), size)
+
+
+def _gaussian_angle(pred, idx: int) -> tuple[np.ndarray, np.ndarray]:
+    return pred["mean"][:, idx], np.sqrt(np.maximum(pred["cov"][:, idx, idx], 0.0))
+
+
+def record_diagnostics(groups: list[tuple[str, ExperimentResult]], out: str | Path) -> Path:
+    """Recording of :func:`diagnostics_figure`; ``groups`` pairs a group's name with one of its results."""
+    fig = diagnostics_figure(groups)
+    with ch.recording(out, "pipps-diagnostics", ch.blueprint(fig)) as rec:
+        ch.draw(rec, fig)
+        for gi, (_, r) in enumerate(groups):
+            draw_prediction(rec, fig.charts[gi], r, PALETTE[gi % len(PALETTE)])
+        if len(fig.charts) > len(groups):
+            k_chart, v_chart = fig.charts[len(groups):]
+            for gi, (_, r) in enumerate(groups):
+                d = r.trials[-1].diagnostics
+                if d is None:
+                    continue
+                color = PALETTE[gi % len(PALETTE)]
+                t = np.arange(1, len(d["k_lr"]) + 1)
+                ch.line(rec, k_chart, f"group_{gi}", t, d["k_lr"], color, width=1.4)
+                ch.line(rec, v_chart, f"group_{gi}/rp", t, d["var_rp"], color, width=1.4)
+                ch.line(rec, v_chart, f"group_{gi}/lr", t, d["var_lr"], color, width=1.4, dash=True)
+    return Path(out)
+
+
+def draw_prediction(rec, c: ch.Chart, r: ExperimentResult, color) -> None:
+    """The final trial's predicted angle (particles, or PILCO's mean ± 2 sd) and the real rollout."""
+    from pipps.experiments.loop import make_experiment_task
+
+    final = r.trials[-1]
+    idx, real_idx, _ = ANGLE_INDEX[r.config.task]
+    dt = make_experiment_task(r.config).dt
+    pred = final.predicted or {}
+    if "particles" in pred:
+        x = pred["particles"][:, :, idx]
+        t = np.arange(x.shape[0]) * dt
+        for j in range(x.shape[1]):
+            ch.line(rec, c, f"particles/{j}", t, x[:, j], ch.lighter(color, 0.45), width=0.6, order=5.0)
+    elif "mean" in pred:
+        m, s = _gaussian_angle(pred, idx)
+        t = np.arange(len(m)) * dt
+        ch.line(rec, c, "gaussian/mean", t, m, color, width=1.4)
+        for k in (-2.0, 2.0):
+            ch.line(rec, c, f"gaussian/{'lo' if k < 0 else 'hi'}", t, m + k * s, color, width=1.0, dash=True)
+    valid = np.concatenate([[True], np.asarray(final.valid, bool)])
+    real = final.states[valid][:, real_idx]
+    ch.line(rec, c, "real", np.arange(len(real)) * dt, real, ch.BLACK, width=1.6, order=20.0)
