@@ -35,6 +35,22 @@ _positive_int = _int_at_least(1)
 _nonnegative_int = _int_at_least(0)
 
 
+def _jobs(text: str) -> int | None:
+    """``--jobs``: a positive integer, or ``auto`` (None: :func:`pipps.experiments.sweep.cpu_layout`)."""
+    return None if text == "auto" else _positive_int(text)
+
+
+def _layout(args, experiments: int) -> str:
+    """How ``pipps sweep`` will run ``experiments``: workers × CPUs each, for its start-up line."""
+    if args.backend == "ray":
+        return f"{args.jobs or 'all'} task(s) in flight"
+    from pipps.experiments.sweep import available_cpus, cpu_layout
+
+    workers, width = cpu_layout(args.jobs, max(experiments, 1), available_cpus())
+    where = "this process" if workers == 1 else f"{workers} pinned worker(s)"
+    return f"{where} × {width if workers > 1 else available_cpus()} CPU(s)"
+
+
 def _nonnegative_float(text: str) -> float:
     try:
         value = float(text)
@@ -133,8 +149,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--seed-start", type=_nonnegative_int, default=0)
     sw.add_argument("--methods", default=None, help="comma-separated subset of the table's methods")
     sw.add_argument("--k", dest="ks", default=None, help="comma-separated subset of the table's k values")
-    sw.add_argument("--jobs", type=_positive_int, default=1,
-                    help="parallel worker processes (local) or Ray tasks in flight (ray)")
+    sw.add_argument("--jobs", type=_jobs, default=None,
+                    help="parallel worker processes (local; default auto: one per CPU, each pinned, and the CPUs "
+                         "shared out when fewer experiments remain) or Ray tasks in flight (ray; default: all)")
     sw.add_argument("--backend", default="local", choices=["local", "ray"],
                     help="local worker processes, or tasks on a Ray cluster (needs pipps[ray])")
     sw.add_argument("--address", default=None,
@@ -353,7 +370,7 @@ def _cmd_sweep(args) -> int:
     claim_sweep_folder(args.out, configs, write=False)  # the real sweep writes it (run_sweep)
     todo, done, resumes = plan(configs, args.out)
     print(f"{len(configs)} experiments: {len(done)} already complete, {len(todo)} to run "
-          f"({sum(1 for n in resumes if n)} resumed from their last finished trial) with {args.jobs} job(s) "
+          f"({sum(1 for n in resumes if n)} resumed from their last finished trial) with {_layout(args, len(todo))} "
           f"({args.backend}) -> {args.out}/", file=sys.stderr)
     if args.dry_run:
         for (_, path), n in zip(todo, resumes):

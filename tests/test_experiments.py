@@ -31,7 +31,8 @@ from pipps.experiments.results import (
     read_summary,
     write_result,
 )
-from pipps.experiments.sweep import experiment_name, ray_task, run_sweep, worker_pool
+from pipps.experiments.sweep import (accelerator_installed, cpu_layout, experiment_name, ray_task, run_sweep,
+                                     worker_pool)
 from pipps.experiments.tables import TABLES, collect, render_curves, render_table, table_configs, wilson_interval
 
 TINY = dict(num_learned=1, num_particles=8, policy_evals=6, eval_rollouts=3, gp_max_iters=10, progress_chunk=3,
@@ -399,6 +400,31 @@ def test_sweep_workers_are_pinned_to_distinct_cpus():
         pinned = [os.sched_getaffinity(pid) for pid in pool._processes]
     assert len(pinned) == 2 and all(len(c) == 1 for c in pinned)
     assert pinned[0] != pinned[1]
+
+
+def test_cpu_layout_gives_every_cpu_work_and_never_more_workers_than_experiments(monkeypatch):
+    monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+    assert not accelerator_installed()
+    assert cpu_layout(None, 40, 2) == (2, 1)  # a table on two cores: two pinned one-thread workers
+    assert cpu_layout(None, 1, 2) == (1, 2)  # a lone experiment: every core
+    assert cpu_layout(None, 2, 8) == (2, 4) and cpu_layout(None, 3, 8) == (3, 2)
+    assert cpu_layout(1, 40, 8) == (1, 8) and cpu_layout(3, 40, 8) == (3, 2)
+    assert cpu_layout(16, 40, 8) == (16, 1)
+    with pytest.raises(ValueError, match="jobs"):
+        cpu_layout(0, 4, 2)
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs two CPUs")
+def test_a_wide_worker_holds_distinct_cpus_and_a_second_gets_none_of_them():
+    with worker_pool(1, width=2) as pool:
+        pool.submit(time.sleep, 0.2).result()
+        (wide,) = [os.sched_getaffinity(pid) for pid in pool._processes]
+        with worker_pool(1) as other:  # a free CPU if there is one; else it shares one, one thread
+            other.submit(time.sleep, 0.2).result()
+            (narrow,) = [os.sched_getaffinity(pid) for pid in other._processes]
+    assert len(wide) == 2 and len(narrow) == 1
+    assert not narrow & wide or len(os.sched_getaffinity(0)) == 2
 
 
 # -- the Ray backend, on a local Ray instance started by the test ----------------------------------

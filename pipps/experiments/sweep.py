@@ -12,9 +12,13 @@ configuration and a resumed one continues from exactly the state it stopped in, 
 killed-and-resumed sweep gives the same results as an uninterrupted one.
 
 Workers are separate processes (``spawn``: JAX does not survive ``fork``). With more than one
-job, each worker pins itself to one CPU of its CPU set that no other worker holds
-(:func:`_pin_to_free_cpu`: a lock file per CPU, Linux ``sched_setaffinity``), and XLA sizes its
-CPU thread pool from that affinity, so jobs do not fight over cores. (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false`` does not do this on
+job, each worker pins itself to CPUs of its CPU set that no other worker holds
+(:func:`_pin_to_free_cpus`: a lock file per CPU, Linux ``sched_setaffinity``), and XLA sizes its
+CPU thread pool from that affinity, so jobs do not fight over cores. :func:`cpu_layout` decides
+how many workers and how many CPUs each: by default one worker per CPU (two pinned experiments
+on two cores do twice the work of one; one experiment on two XLA threads only ~1.4× —
+docs/performance.md), and when fewer experiments remain than CPUs, each worker gets an equal
+share of them, so a lone experiment runs on every core it is given. (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false`` does not do this on
 jaxlib 0.10: a process with it still ran two threads, measured in docs/performance.md.)
 
 ``backend="ray"`` runs the same plan on a Ray cluster (``address``; without one, ``ray.init()``
@@ -32,6 +36,7 @@ import concurrent.futures as cf
 import dataclasses
 import multiprocessing as mp
 import os
+import pkgutil
 import sys
 import tempfile
 import time
@@ -42,9 +47,48 @@ from typing import Callable, Iterable
 from pipps.experiments.config import ExperimentConfig, experiment_name  # noqa: F401  (re-exported)
 
 
-def worker_pool(jobs: int) -> cf.ProcessPoolExecutor:
-    """``jobs`` spawn workers, each pinned to a CPU no other pinned pipps process holds (module doc)."""
-    return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"), initializer=_pin_to_free_cpu)
+def available_cpus() -> int:
+    """The CPUs this process may run on (its affinity; ``os.cpu_count()`` where there is none)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def accelerator_installed() -> bool:
+    """Whether JAX may pick an accelerator: a PJRT plugin is installed and ``JAX_PLATFORMS`` does not
+    pin the CPU. Checked without initialising JAX (a parent that did would hold the device's memory)."""
+    import importlib.util
+
+    if os.environ.get("JAX_PLATFORMS", "").split(",")[0].strip() == "cpu":
+        return False
+    try:
+        import jax_plugins  # namespace package of the CUDA/ROCm/TPU plugins
+
+        return any(True for _ in pkgutil.iter_modules(jax_plugins.__path__))
+    except ImportError:
+        return importlib.util.find_spec("libtpu") is not None
+
+
+def cpu_layout(jobs: int | None, experiments: int, cpus: int) -> tuple[int, int]:
+    """``(workers, cpus_per_worker)`` for ``experiments`` left to run on ``cpus`` CPUs.
+
+    ``jobs=None`` (``--jobs auto``) asks for one worker per CPU (one in all where an accelerator is
+    installed: workers would compete for its memory); an explicit ``jobs`` is a cap. Never
+    more workers than experiments; the CPUs are shared out equally (at least one each), so two
+    experiments on eight CPUs run four threads each, and one experiment runs on all of them.
+    """
+    if jobs is not None and jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
+    if jobs is None:
+        jobs = 1 if accelerator_installed() else cpus
+    workers = max(1, min(jobs, experiments))
+    return workers, max(1, cpus // workers)
+
+
+def worker_pool(jobs: int, width: int = 1) -> cf.ProcessPoolExecutor:
+    """``jobs`` spawn workers, each pinned to ``width`` CPUs no other pinned pipps process holds."""
+    return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                                  initializer=_pin_to_free_cpus, initargs=(width,))
 
 
 @dataclasses.dataclass
@@ -125,7 +169,7 @@ def run_sweep(
     configs: Iterable[ExperimentConfig],
     out_dir: str | os.PathLike,
     *,
-    jobs: int = 1,
+    jobs: int | None = None,
     on_done: Callable[[str, str, int, int], None] | None = None,
     backend: str = "local",
     address: str | None = None,
@@ -144,7 +188,7 @@ def run_sweep(
     cells with a single unfinished seed run as usual. Unfinished seeds resume from their last
     finished trial, batched with the seeds that stopped after the same trial.
     """
-    if jobs < 1:
+    if jobs is not None and jobs < 1:
         raise ValueError(f"jobs must be >= 1, got {jobs}")
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
@@ -181,12 +225,14 @@ def run_sweep(
         todo = _run_batches(todo, batching, record)
     if ray is not None:
         if todo:
-            _run_on_ray(ray, todo, jobs, address, record)
-    elif jobs == 1:
+            _run_on_ray(ray, todo, len(todo) if jobs is None else jobs, address, record)
+        return SweepReport(ran, skipped, failed, time.perf_counter() - start, notes)
+    workers, width = cpu_layout(jobs, len(todo), available_cpus())
+    if workers == 1:  # in this process, on every CPU it may use
         for cfg, path in todo:
             record(*_run_one(cfg, str(path)))
     elif todo:
-        with worker_pool(jobs) as pool:
+        with worker_pool(workers, width) as pool:
             futures = [pool.submit(_run_one, cfg, str(path)) for cfg, path in todo]
             for fut in cf.as_completed(futures):
                 record(*fut.result())
@@ -288,45 +334,48 @@ def import_ray():
     return ray
 
 
-_cpu_lock = None  # the open lock file that reserves this process's CPU; released when it exits
+_cpu_locks: list[int] = []  # the open lock files that reserve this process's CPUs; released when it exits
 
 
-def _pin_to_free_cpu() -> int | None:
-    """Pin this process to a CPU of its CPU set that no other process pinned this way holds.
+def _pin_to_free_cpus(width: int = 1) -> set[int] | None:
+    """Pin this process to ``width`` CPUs of its CPU set that no other process pinned this way holds.
 
-    Each CPU has a lock file in the node's temporary folder; the first one this process can lock
-    (``flock``, released by the kernel when the process exits) is its CPU. With more such
-    processes than CPUs it shares one (pid round robin), still one XLA thread. Returns the CPU,
-    or None without Linux CPU affinity.
+    Each CPU has a lock file in the node's temporary folder; the first ``width`` this process can
+    lock (``flock``, released by the kernel when the process exits) are its CPUs. Where none is
+    free (more such processes than CPUs) it shares one (pid round robin), still one XLA thread;
+    where fewer than ``width`` are free it takes those. Returns the CPUs, or None without Linux
+    CPU affinity.
     """
-    global _cpu_lock
     if not hasattr(os, "sched_setaffinity"):
         return None
     import fcntl
 
     cpus = sorted(os.sched_getaffinity(0))
-    chosen = cpus[os.getpid() % len(cpus)]
+    chosen: set[int] = set()
     try:
         folder = Path(tempfile.gettempdir()) / "pipps-cpu-locks"
         folder.mkdir(exist_ok=True)
         for cpu in cpus:
+            if len(chosen) == width:
+                break
             fd = os.open(folder / f"cpu{cpu}", os.O_CREAT | os.O_RDWR, 0o666)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 os.close(fd)
                 continue
-            _cpu_lock, chosen = fd, cpu
-            break
+            _cpu_locks.append(fd)
+            chosen.add(cpu)
     except OSError:  # no usable lock folder: keep the round-robin choice
         pass
-    os.sched_setaffinity(0, {chosen})
+    chosen = chosen or {cpus[os.getpid() % len(cpus)]}
+    os.sched_setaffinity(0, chosen)
     return chosen
 
 
 def _pinned(fn, *args):
     """Ray task body: pin to a free CPU before ``fn`` (and with it JAX) runs, then call it."""
-    _pin_to_free_cpu()
+    _pin_to_free_cpus(1)
     return fn(*args)
 
 
