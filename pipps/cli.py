@@ -8,6 +8,9 @@ gradient error) and ``rollout`` (true-system rollouts with a random policy).
 
 Errors are one line naming the problem (exit status 2 for bad input); ``--debug`` or
 ``PIPPS_DEBUG=1`` shows the traceback of an unexpected one.
+
+Compiled programs are kept in JAX's persistent compilation cache (:func:`enable_compilation_cache`),
+so the second experiment of a sweep, and every later command, reuses the first one's programs.
 """
 
 from __future__ import annotations
@@ -678,10 +681,34 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def enable_compilation_cache() -> str | None:
+    """Switch on JAX's persistent compilation cache for this process and the workers it spawns.
+
+    The folder is ``$JAX_COMPILATION_CACHE_DIR`` if set, else ``$PIPPS_COMPILATION_CACHE``, else
+    ``$XDG_CACHE_HOME/pipps/jax`` (``~/.cache/pipps/jax``); ``PIPPS_COMPILATION_CACHE=off`` leaves it
+    off. A cached program is the compiled executable itself, so results are bit for bit those of a
+    fresh compilation; the cache key covers the program, the jaxlib version and the device, and a
+    program compiled for another CPU is recompiled. Only programs that took a second or more to
+    compile are stored. Returns the folder, or None when off.
+    """
+    import os
+
+    chosen = os.environ.get("PIPPS_COMPILATION_CACHE", "")
+    if chosen.lower() in ("off", "0", "no", "none"):
+        return None
+    default = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "pipps", "jax")
+    folder = os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", chosen or default)  # spawned workers inherit it
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", folder)
+    return folder
+
+
 def main(argv: list[str] | None = None) -> int:
     import os
 
     args = build_parser().parse_args(argv)
+    enable_compilation_cache()
     name = f"pipps {args.command}" + (f" {args.study}" if args.command == "study" else "")
     try:
         return _dispatch(args)

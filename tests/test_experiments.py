@@ -631,3 +631,28 @@ def test_sweep_killed_with_sigkill_resumes(tmp_path):
     assert first.name in os.listdir(full)
     for path in full.glob("*.h5"):  # the folder also holds its sweep manifest
         assert_same_results(read_result(path), read_result(killed / path.name))
+
+
+def test_the_cli_keeps_compiled_programs_in_a_persistent_cache(monkeypatch, tmp_path):
+    """`enable_compilation_cache` (called by every pipps command) stores compiled programs in the
+    chosen folder, hands the folder to spawned workers through the environment, and can be switched off."""
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache
+
+    from pipps.cli import enable_compilation_cache
+
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.setenv("PIPPS_COMPILATION_CACHE", "off")
+    assert enable_compilation_cache() is None and "JAX_COMPILATION_CACHE_DIR" not in os.environ
+    monkeypatch.setenv("PIPPS_COMPILATION_CACHE", str(tmp_path / "cache"))
+    before = jax.config.jax_compilation_cache_dir, jax.config.jax_persistent_cache_min_compile_time_secs
+    try:
+        assert enable_compilation_cache() == str(tmp_path / "cache") == os.environ["JAX_COMPILATION_CACHE_DIR"]
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)  # store even a fast compile
+        compilation_cache.reset_cache()  # this test process compiled before: let it look at the setting again
+        jax.jit(lambda x: jax.numpy.sin(x) * 3.0 + 0.25)(jax.numpy.arange(7.0)).block_until_ready()
+        assert any((tmp_path / "cache").iterdir())
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before[0])
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])
+        compilation_cache.reset_cache()
