@@ -523,18 +523,26 @@ def _study_figure(figure, paths, args):
     return ch.size(fig), f"the {figure} figure of {paths[0]}"
 
 
+def _read_each(paths, reader) -> list:
+    """``reader(p)`` for every path, naming on stderr the files it cannot read (``ResultError``)."""
+    from pipps.experiments.results import ResultError
+
+    read = []
+    for p in paths:
+        try:
+            read.append(reader(p))
+        except ResultError as err:
+            print(f"  skipped: {err}", file=sys.stderr)
+    return read
+
+
 def _result_figure(figure, paths, args):
     from pipps import charts as ch
     from pipps.experiments.figures import diagnostics_figure, record_diagnostics
     from pipps.experiments.plot import group_name, record
-    from pipps.experiments.results import ResultError, read_result
+    from pipps.experiments.results import read_result
 
-    results = []
-    for p in paths:
-        try:
-            results.append(read_result(p))
-        except ResultError as err:
-            print(f"  skipped: {err}", file=sys.stderr)
+    results = _read_each(paths, read_result)
     if not results:
         raise UsageError("no complete results to plot")
     if figure == "overview":
@@ -550,15 +558,10 @@ def _result_figure(figure, paths, args):
 def _table_figure(figure, paths, args):
     from pipps import charts as ch
     from pipps.experiments import figures as f
-    from pipps.experiments.results import ResultError, read_summary
+    from pipps.experiments.results import read_summary
     from pipps.experiments.tables import TABLES, cell_summaries, collect, get_table, judge_counted
 
-    summaries = []
-    for p in paths:
-        try:
-            summaries.append(read_summary(p))
-        except ResultError as err:
-            print(f"  skipped: {err}", file=sys.stderr)
+    summaries = _read_each(paths, read_summary)
     try:
         tables = [get_table(args.table)] if args.table else list(TABLES.values())
     except ValueError as err:

@@ -226,16 +226,16 @@ def run_sweep(
     if ray is not None:
         if todo:
             _run_on_ray(ray, todo, len(todo) if jobs is None else jobs, address, record)
-        return SweepReport(ran, skipped, failed, time.perf_counter() - start, notes)
-    workers, width = cpu_layout(jobs, len(todo), available_cpus())
-    if workers == 1:  # in this process, on every CPU it may use
-        for cfg, path in todo:
-            record(*_run_one(cfg, str(path)))
     elif todo:
-        with worker_pool(workers, width) as pool:
-            futures = [pool.submit(_run_one, cfg, str(path)) for cfg, path in todo]
-            for fut in cf.as_completed(futures):
-                record(*fut.result())
+        workers, width = cpu_layout(jobs, len(todo), available_cpus())
+        if workers == 1:  # in this process, on every CPU it may use
+            for cfg, path in todo:
+                record(*_run_one(cfg, str(path)))
+        else:
+            with worker_pool(workers, width) as pool:
+                futures = [pool.submit(_run_one, cfg, str(path)) for cfg, path in todo]
+                for fut in cf.as_completed(futures):
+                    record(*fut.result())
     return SweepReport(ran, skipped, failed, time.perf_counter() - start, notes)
 
 
