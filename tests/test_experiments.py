@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from pipps.experiments import ConfigError, resolve_config, run_experiment
+from pipps.experiments.config import config_hash, departures, same_experiment
 from pipps.experiments.results import (
     ResultError,
     check_result,
@@ -210,6 +211,34 @@ def test_result_file_schema_and_round_trip(tiny_result):
     # the stored evaluation is what the policy does on the true system
     np.testing.assert_allclose(f_eval := back.trials[1].eval_return, np.mean(result.trials[1].eval_returns))
     assert math.isfinite(f_eval)
+
+
+def test_computational_settings_are_not_part_of_an_experiments_identity():
+    """gp_chunk and progress_chunk say how an experiment is computed: same experiment, hash and file
+    name, no departure from the protocol; the thesis and PILCO presets use exact GP capacities."""
+    a = resolve_config("thesis", "cartpole_swingup", seed=3)
+    assert a.gp_chunk == 1 and resolve_config("pilco", "unicycle").gp_chunk == 1
+    assert resolve_config("quick", "cartpole_swingup").gp_chunk == 100
+    for b in (a.replace(gp_chunk=100), a.replace(progress_chunk=7), a.replace(gp_chunk=30, progress_chunk=600)):
+        assert a != b and same_experiment(a, b) and config_hash(a) == config_hash(b)
+        assert experiment_name(b) == experiment_name(a) == "cartpole_swingup_angle_k1_tp_thesis_s3"
+        assert departures(b) == {}
+    assert not same_experiment(a, a.replace(num_inducing=200))
+
+
+def test_exact_gp_capacities_change_only_the_rounding(tiny_result):
+    """The tiny run with its 30 points padded to 100 (quick preset) and unpadded: padded rows are exact
+    zeros, so the GP training, the policy steps and the true-system trials agree to the rounding that
+    L-BFGS and a few policy steps amplify (the batched path's bound, tests/test_batched.py)."""
+    padded, _ = tiny_result
+    exact = run_experiment(tiny(gp_chunk=1))
+    assert [t.gp_info["capacity"] for t in exact.trials[1:]] == [30]
+    assert [t.gp_info["capacity"] for t in padded.trials[1:]] == [100]
+    for ta, tb in zip(padded.trials, exact.trials):
+        for name in ("states", "actions", "eval_returns", "policy"):
+            np.testing.assert_allclose(getattr(ta, name), getattr(tb, name), rtol=1e-7, atol=1e-9, err_msg=name)
+    for name in ("log_lengthscale", "log_signal", "log_noise"):
+        np.testing.assert_allclose(padded.trials[1].gp_hyper[name], exact.trials[1].gp_hyper[name], rtol=1e-7)
 
 
 def test_results_are_deterministic_in_the_config(tiny_result):

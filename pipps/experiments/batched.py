@@ -262,6 +262,7 @@ def run_batched(
                     trial.opt_trace, trial.diagnostics = step_report(infos_of[s])
                     trial.predicted = predicted[s]
                     record_gp(trial, post, info)
+                    trial.gp_info["capacity"] = capacity
                     trials[s] = trial
             finish_trial(i, trials, t0)
             progress(dict(phase="evaluated", trial=i, trials=cfg.num_trials, seeds=len(active),

@@ -112,7 +112,7 @@ class ExperimentConfig:
     # PILCO
     pilco_linesearches: int | None = None  # None: PILCO's budget for the task (tasks.md §2, §3.7)
     # GP model
-    gp_chunk: int = 100  # data padded to multiples of this (few compiled sizes)
+    gp_chunk: int = 100  # data padded to multiples of this (few compiled sizes; 1: exact sizes)
     gp_max_iters: int = 300
     fitc_threshold: int = 300
     num_inducing: int = 300
@@ -244,6 +244,12 @@ def preset_values(preset: str, task: str) -> dict[str, Any]:
             v.update(num_random=10, num_learned=40, policy="linear")
         else:
             v.update(num_random=1, num_learned=15, policy="pilco_rbf", num_basis=10)
+    if preset != "quick":
+        # exact GP capacities: one compiled size per trial (the persistent compilation cache shares
+        # them across a sweep's experiments) against ~11 % of a thesis TP experiment's arithmetic
+        # spent on padding in steps of 100 (docs/performance.md); quick runs are compilation-bound
+        # and keep few sizes
+        v.update(gp_chunk=1)
     if preset == "quick":
         if unicycle:
             v.update(num_random=3, num_learned=5, num_particles=50, policy_evals=150, eval_rollouts=10,
@@ -365,10 +371,22 @@ def _legacy_protocol(cfg: ExperimentConfig) -> ExperimentConfig:
 #: The settings that say which table cell and seed an experiment is; every other setting is the protocol's.
 IDENTITY = ("task", "protocol", "method", "cost", "cost_scale", "k", "seed")
 
+#: Settings that say how an experiment is computed, not what is computed, so they are not part of
+#: its identity (:func:`canonical`: its hash, file name, resume and pooling checks). ``gp_chunk``
+#: pads the GP data with masked rows whose kernel rows, weights and ``inv`` entries are exact
+#: zeros (tests/test_gp.py), so a capacity changes only the rounding of sums over the data and, on
+#: the first FITC trial, which uniform random subset of the real rows starts the inducing inputs
+#: (same distribution). ``progress_chunk`` splits the policy steps into compiled calls of another
+#: length, each call keyed by the step it starts at, so it changes which random numbers are drawn,
+#: not their distribution. Both leave an experiment equal in distribution (docs/performance.md,
+#: "Exact GP capacities"); each trial stores the capacity it used (``gp_info["capacity"]``).
+COMPUTATIONAL = ("gp_chunk", "progress_chunk")
+
 
 def canonical(cfg: ExperimentConfig) -> dict[str, Any]:
-    """The configuration as a dict with the default cost named: ``cost=None`` and ``cost="angle"``
-    are the same experiment on the cart-pole's thesis preset."""
+    """The configuration as a dict with the default cost named (``cost=None`` and ``cost="angle"``
+    are the same experiment on the cart-pole's thesis preset) and without the
+    :data:`COMPUTATIONAL` settings."""
     from pipps.tasks.presets import DEFAULT_COST
 
     d = cfg.to_dict()
@@ -378,7 +396,7 @@ def canonical(cfg: ExperimentConfig) -> dict[str, Any]:
         v = d[name]
         if float in typing.get_args(hint) + (hint,) and isinstance(v, int) and not isinstance(v, bool):
             d[name] = float(v)
-    return d
+    return {k: v for k, v in d.items() if k not in COMPUTATIONAL}
 
 
 def same_experiment(a: ExperimentConfig, b: ExperimentConfig) -> bool:

@@ -465,6 +465,7 @@ def run_experiment(
                 trial = _trial_from(i, "learned", traj, evals, flat(policy), timings)
                 timings.update(gp=t1 - t0, optimize=t2 - t1, trial=t3 - t2, evaluate=time.perf_counter() - t3)
                 record_gp(trial, post, info)
+                trial.gp_info["capacity"] = int(data.inputs.shape[0])
                 if ranks is not None:
                     trial.gp_info["variance_ranks"] = ranks
                     trial.gp_info["variance_bound"] = np.asarray(model.bound)

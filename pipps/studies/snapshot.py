@@ -60,8 +60,9 @@ class Snapshot:
             lambda th: objective(self.task, self.unravel(th), self.model))))
 
 
-def load_snapshot(path: str | os.PathLike, trial: int) -> Snapshot:
+def load_snapshot(path: str | os.PathLike, trial: int, *, gp_chunk: int | None = None) -> Snapshot:
     """The policy and model at the start of learned trial ``trial``'s optimisation (module doc).
+    ``gp_chunk``: pad the data to multiples of this instead of the file's setting (1: no padding).
 
     Raises:
       ValueError: ``trial`` is not a learned trial of the file, or the trial used FITC.
@@ -87,7 +88,7 @@ def load_snapshot(path: str | os.PathLike, trial: int) -> Snapshot:
         a, b = training_pairs(task, traj)
         xs.append(a)
         ys.append(b)
-    data = pad_to_capacity(make_data(np.concatenate(xs), np.concatenate(ys)), chunk=cfg.gp_chunk)
+    data = pad_to_capacity(make_data(np.concatenate(xs), np.concatenate(ys)), chunk=cfg.gp_chunk if gp_chunk is None else gp_chunk)
     hyper = GPHyper(*(jnp.asarray(t.gp_hyper[n]) for n in ("log_lengthscale", "log_signal", "log_noise")))
     if sparse:
         model, _, ok = fitc_posterior(hyper, data, jnp.asarray(t.gp_info["inducing"]), gp_config(cfg))
