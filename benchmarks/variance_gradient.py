@@ -19,7 +19,7 @@ from jax.flatten_util import ravel_pytree
 
 import pipps  # noqa: F401  (float64)
 from pipps.experiments.methods import particle_method
-from pipps.gp.lowrank import low_rank_posterior
+from pipps.gp.lowrank import low_rank_model
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.studies import load_snapshot
 
@@ -43,7 +43,7 @@ def main():
         exact = np.stack([np.asarray(grad(k, state, snap.model)) for k in keys])
         spread = float(np.sqrt(np.sum(np.var(exact, axis=0, ddof=1))))
         for tol in [float(t) for t in args.tols.split(",")]:
-            model, ranks = low_rank_posterior(snap.model, snap.data, tol)
+            model, ranks = low_rank_model(snap.model, snap.data, tol, sparse=snap.sparse, jitter=snap.jitter)
             approx = np.stack([np.asarray(grad(k, state, model)) for k in keys])
             diff = float(np.max(np.linalg.norm(approx - exact, axis=1)))
             name = f"{path.rsplit('/', 1)[-1].replace('cartpole_swingup_angle_', '').replace('.h5', '')} t{trial}"

@@ -33,11 +33,11 @@ exact = timeit(rcfg, est)
 off = timeit(dataclasses.replace(rcfg, model_variance=False), est)
 print(f"N={snap.num_points} M={M} P={rcfg.num_particles}: GEMM {g:.1f} Gflop/s; TP step exact {exact*1e3:.1f} ms, "
       f"variance off {off*1e3:.1f} ms; variance share {(exact-off)/exact:.0%}")
-from pipps.gp.lowrank import low_rank_posterior
+from pipps.gp.lowrank import low_rank_model
 
 for tol in [float(t) for t in (sys.argv[3].split(",") if len(sys.argv) > 3 else [])]:
     exact_model = snap.model
-    snap.model, ranks = low_rank_posterior(exact_model, snap.data, tol)
+    snap.model, ranks = low_rank_model(exact_model, snap.data, tol, sparse=snap.sparse, jitter=snap.jitter)
     t_lr = timeit(rcfg, est)
     snap.model = exact_model
     print(f"  low-rank tol {tol:g} (ranks {ranks.tolist()}): TP step {t_lr*1e3:.1f} ms, {exact / t_lr:.2f}x the exact step")

@@ -14,7 +14,8 @@ import jax.numpy as jnp
 from pipps.experiments import resolve_config
 from pipps.experiments.loop import planning_model
 from pipps.gp import GPHyper, full_posterior, make_data, pad_to_capacity
-from pipps.gp.lowrank import low_rank_posterior
+from pipps.gp.fitc import fitc_posterior
+from pipps.gp.lowrank import low_rank_fitc_posterior, low_rank_posterior
 from pipps.gp.types import GPConfig
 from pipps.particles.models import model_output
 
@@ -62,6 +63,55 @@ def test_at_full_rank_the_form_is_the_exact_variance_and_its_jacobian():
     np.testing.assert_allclose(approx.jac_var, exact.jac_var, rtol=1e-6, atol=1e-9 * scale)
 
 
+def _fitc_problem(seed, n, m, dz, e, log_sn):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-2, 2, (n, dz))
+    y = np.sin(x @ rng.normal(size=(dz, e))) + 0.01 * rng.normal(size=(n, e))
+    data = pad_to_capacity(make_data(x, y), chunk=16)
+    hyper = GPHyper(jnp.asarray(rng.uniform(-1.0, 0.7, (e, dz))), jnp.asarray(rng.uniform(-0.5, 0.5, e)),
+                    jnp.full(e, log_sn))
+    xu = x[rng.choice(n, m, replace=False)] + 0.05 * rng.normal(size=(m, dz))
+    post, jitter, ok = fitc_posterior(hyper, data, jnp.asarray(xu), GPConfig(fitc_threshold=m, num_inducing=m))
+    assert bool(np.all(np.asarray(ok)))
+    z = jnp.asarray(np.concatenate([x[: n // 2] + 0.1 * rng.normal(size=(n // 2, dz)), rng.uniform(-3, 3, (20, dz))]))
+    return post, np.asarray(jitter), z
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(20, 60), m=st.integers(4, 20), dz=st.integers(1, 3),
+       e=st.integers(1, 3), log_sn=st.floats(-4.0, -1.0), tol=st.sampled_from([1e-1, 1e-3, 1e-6]))
+def test_the_fitc_bound_holds_at_every_input(seed, n, m, dz, e, log_sn, tol):
+    post, jitter, z = _fitc_problem(seed, n, m, dz, e, log_sn)
+    lr, ranks = low_rank_fitc_posterior(post, tol, jitter=jitter, bucket=4)
+    exact = model_output(post, z, variance=True, jacobian=False)
+    approx = model_output(lr, z, variance=True, jacobian=False)
+    sn2 = np.exp(2 * log_sn)
+    sf2 = np.exp(2 * np.asarray(post.hyper.log_signal))
+    # slack: the exact path's rounding of kᵀ inv k, ~eps·‖inv‖·M·σ_f², with ‖inv‖ ≤ ‖(K_mm + ρI)⁻¹‖ ≤ 1/ρ
+    slack = 1e-15 * m * sf2 / np.maximum(jitter, 1e-12) * sf2
+    err = np.abs(np.asarray(exact.var) - np.asarray(approx.var))
+    assert np.all(err <= np.asarray(lr.bound) * sn2 + slack), (err.max(), np.asarray(lr.bound) * sn2, slack)
+    assert np.all(np.asarray(lr.bound) <= tol) and np.all(ranks <= m)
+    np.testing.assert_array_equal(np.asarray(approx.mean), np.asarray(exact.mean))
+
+
+def test_the_fitc_bound_is_not_vacuous_and_full_rank_is_exact():
+    """On a problem whose spectrum falls, a loose tolerance keeps few directions and the error it
+    makes is real (so the bound test can fail); at full rank the form is the exact variance and Jacobian."""
+    post, jitter, z = _fitc_problem(5, 80, 40, 1, 2, -1.0)  # 40 inducing inputs on a line
+    lr, ranks = low_rank_fitc_posterior(post, 1e-1, jitter=jitter)
+    assert np.all(ranks <= 12)
+    err = np.abs(np.asarray(model_output(post, z, variance=True, jacobian=False).var)
+                 - np.asarray(model_output(lr, z, variance=True, jacobian=False).var))
+    assert np.all(err.max(axis=0) > 1e-3 * np.asarray(lr.bound) * np.exp(-2.0))  # a real error, within the bound
+    full, ranks = low_rank_fitc_posterior(post, 1e-300, jitter=jitter)
+    exact = model_output(post, z, variance=True, jacobian=True)
+    approx = model_output(full, z, variance=True, jacobian=True)
+    scale = float(np.max(np.exp(2 * np.asarray(post.hyper.log_signal))))
+    np.testing.assert_allclose(approx.var, exact.var, rtol=0, atol=1e-8 * scale)
+    np.testing.assert_allclose(approx.jac_var, exact.jac_var, rtol=1e-6, atol=1e-8 * scale)
+
+
 def test_the_default_plans_on_the_exact_posterior_and_refusals():
     post, data, jitter, _ = _problem(1, 20, 2, 2, -2.0)
 
@@ -76,7 +126,11 @@ def test_the_default_plans_on_the_exact_posterior_and_refusals():
     assert ranks is not None and type(model).__name__ == "LowRankPosterior"
     assert planning_model(cfg.replace(variance_tol=1e-2, method="tp-sf"), post, data, Info)[0] is post
     Info.sparse = True
-    assert planning_model(cfg.replace(variance_tol=1e-2), post, data, Info)[0] is post  # FITC stays exact
+    fpost, fjitter, _ = _fitc_problem(1, 40, 12, 2, 2, -2.0)[:3]
+    Info.posterior_jitter = fjitter
+    model, ranks = planning_model(cfg.replace(variance_tol=1e-2), fpost, None, Info)  # FITC: its own form
+    assert ranks is not None and type(model).__name__ == "LowRankPosterior" and np.all(np.asarray(model.bound) <= 1e-2)
+    assert planning_model(cfg, fpost, None, Info)[0] is fpost
     with pytest.raises(ValueError, match="tol must be > 0"):
         low_rank_posterior(post, data, 0.0)
     with pytest.raises(ValueError, match="variance_tol"):

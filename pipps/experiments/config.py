@@ -106,8 +106,8 @@ class ExperimentConfig:
     noise_boost_gtp: float = 25.0  # +σ_n factor for GTP
     progress_chunk: int = 50  # policy steps per compiled call (progress granularity)
     # GP variance: 0 = exact; > 0 = the certified low-rank form (pipps.gp.lowrank) with its error below
-    # variance_tol·σ² (σ² = σ_n² + the posterior's jitter) at every input; full-GP trials only (FITC
-    # trials stay exact); docs/performance.md
+    # variance_tol·σ² (σ² = σ_n² + the posterior's jitter; σ_n² for FITC) at every input, full-GP and
+    # FITC trials alike; docs/performance.md
     variance_tol: float = 0.0
     # PILCO
     pilco_linesearches: int | None = None  # None: PILCO's budget for the task (tasks.md §2, §3.7)

@@ -355,14 +355,14 @@ def record_gp(trial: TrialResult, post, info) -> None:
 
 
 def planning_model(cfg: ExperimentConfig, post, data, info):
-    """The model the policy is optimised on: the posterior itself, or with ``variance_tol > 0`` and a
-    full GP under a particle method that uses the variance, its certified low-rank form
-    (:mod:`pipps.gp.lowrank`). Returns ``(model, ranks or None)``."""
-    if cfg.variance_tol <= 0 or cfg.is_pilco or info.sparse or cfg.method == "tp-sf":
+    """The model the policy is optimised on: the posterior itself, or with ``variance_tol > 0`` under
+    a particle method that uses the variance, its certified low-rank form (:mod:`pipps.gp.lowrank`;
+    full GP or FITC). Returns ``(model, ranks or None)``."""
+    if cfg.variance_tol <= 0 or cfg.is_pilco or cfg.method == "tp-sf":
         return post, None
-    from pipps.gp.lowrank import low_rank_posterior
+    from pipps.gp.lowrank import low_rank_model
 
-    return low_rank_posterior(post, data, cfg.variance_tol, jitter=info.posterior_jitter)
+    return low_rank_model(post, data, cfg.variance_tol, sparse=bool(info.sparse), jitter=info.posterior_jitter)
 
 
 def stored_trajectory(trial: TrialResult) -> Trajectory:

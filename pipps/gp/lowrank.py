@@ -17,6 +17,20 @@ a bound that holds for every particle before any particle is drawn. :func:`low_r
 keeps, per output, the fewest directions whose bound is below ``tol·σ²``; the kept width is
 rounded up to a multiple of ``bucket`` (unused columns have d = 0) so that a run compiles a
 handful of shapes. The work per particle is 4·M·r flops against 2·M² for the exact product.
+
+**FITC** (:func:`low_rank_fitc_posterior`). The variance is ``σ_f² − kᵀ inv k`` with
+``inv = K_mm⁻¹ − B⁻¹`` over the M inducing inputs. With ``L Lᵀ = K_mm + ρI`` (ρ ≥ 0, the
+posterior's jitter) and ``Lᵀ inv L = W diag(g) Wᵀ`` (g descending), ``v_i = L⁻ᵀ w_i`` gives
+``kᵀ inv k = Σ_i g_i (v_iᵀk)²`` and ``inv k = Σ_i g_i v_i (v_iᵀk)``: the same form as above
+with no ``‖Pk‖²`` term and coefficients ``−g``. Keeping the r largest g changes ``kᵀ inv k`` by
+``Σ_{i>r} g_i (w_iᵀL⁻¹k)²``, and ``Σ_i (w_iᵀL⁻¹k)² = kᵀ(K_mm + ρI)⁻¹k ≤ σ_f²`` (the Schur
+complement of the inducing inputs' and z's kernel matrix, with ρI added to a block, stays ≥ 0), so
+
+    |e| ≤ max_{i>r} |g_i| σ_f²,
+
+again for every input. (``g_i = s_i/(1 + s_i)`` for the eigenvalues s of the whitened data
+precision ``L⁻¹K_mn Λ⁻¹ K_nm L⁻ᵀ`` when ρ is the posterior's own jitter; the bound is linear in
+the dropped g, not quadratic as for the full GP, but FITC's spectra fall fast: docs/performance.md.)
 """
 
 from __future__ import annotations
@@ -32,16 +46,16 @@ from pipps.gp.types import GPData, GPHyper, GPPosterior
 
 
 class LowRankPosterior(NamedTuple):
-    """A full-GP posterior with the variance in the low-rank form of the module docstring.
+    """A full-GP or FITC posterior with the variance in the low-rank form of the module docstring.
 
     Attributes:
       hyper, inputs, beta: as in :class:`pipps.gp.GPPosterior` (the mean is exact).
       basis: per output a (M, R_a) array, the kept eigenvectors of its K (zero on padded rows);
         R_a is the output's rank rounded up to a multiple of ``bucket``.
       coef: per output (R_a,), d_i of the kept directions (0 in columns beyond the output's rank).
-      inv_noise: (E,) 1/σ² (σ² = σ_n² + the posterior's jitter).
+      inv_noise: (E,) 1/σ² (σ² = σ_n² + the posterior's jitter); 0 for FITC (no ‖Pk‖² term).
       mask: (M,) 1.0 on real rows, 0.0 on padded ones.
-      bound: (E,) the certified bound on the variance error, in units of σ².
+      bound: (E,) the certified bound on the variance error, in units of σ² (FITC: σ_n²).
     """
 
     hyper: GPHyper
@@ -102,6 +116,54 @@ def low_rank_posterior(post: GPPosterior, data: GPData, tol: float, *, jitter=No
     lr = LowRankPosterior(hyper, post.inputs, post.beta, basis, coef, jnp.asarray(1.0 / s2),
                           jnp.asarray(mask, dtype=post.beta.dtype), jnp.asarray(bounds))
     return lr, np.asarray(ranks)
+
+
+def low_rank_fitc_posterior(post: GPPosterior, tol: float, *, jitter=None,
+                            bucket: int = 25) -> tuple[LowRankPosterior, np.ndarray]:
+    """The low-rank form of a FITC ``post`` (module docstring, "FITC"), keeping per output the fewest
+    directions whose certified variance error is below ``tol·σ_n²``. ``jitter`` (E,): the ridge ρ
+    the posterior put on K_mm (``FitInfo.posterior_jitter``); any ρ ≥ 0 keeps the bound valid, the
+    posterior's own makes it tightest. Returns ``(posterior, ranks (E,))``; host-side, once per model.
+    """
+    if not tol > 0:
+        raise ValueError(f"tol must be > 0 (the exact variance is the plain posterior), got {tol}")
+    xu = np.asarray(post.inputs)
+    hyper = post.hyper
+    inv = np.asarray(post.inv)
+    E, M = np.asarray(post.beta).shape
+    rho = np.zeros(E) if jitter is None else np.asarray(jitter, dtype=float)
+    s2 = np.exp(2.0 * np.asarray(hyper.log_noise))
+    sf2 = np.exp(2.0 * np.asarray(hyper.log_signal))
+    bases, coefs, ranks, bounds = [], [], [], []
+    for a in range(E):
+        kmm = np.asarray(se_ard(jnp.asarray(xu), jnp.asarray(xu), hyper.log_lengthscale[a], hyper.log_signal[a]))
+        chol = np.linalg.cholesky(kmm + rho[a] * np.eye(M))
+        g, w = np.linalg.eigh(chol.T @ inv[a] @ chol)
+        order = np.argsort(g)[::-1]
+        g, w = g[order], w[:, order]
+        tail = np.maximum.accumulate(np.abs(np.concatenate([g, [0.0]]))[::-1])[::-1]  # max_{i≥r} |g_i|
+        b = tail * sf2[a] / s2[a]
+        r = int(np.argmax(b <= tol))
+        v = np.linalg.solve(chol.T, w)  # v_i = L⁻ᵀ w_i
+        bases.append(v)
+        coefs.append(np.where(np.arange(M) < r, -g, 0.0))
+        ranks.append(r)
+        bounds.append(b[r])
+    widths = [int(min(M, max(bucket, -(-r // bucket) * bucket))) for r in ranks]
+    basis = tuple(jnp.asarray(v[:, :n]) for v, n in zip(bases, widths))
+    coef = tuple(jnp.asarray(c[:n]) for c, n in zip(coefs, widths))
+    ones = jnp.ones(M, dtype=post.beta.dtype)
+    lr = LowRankPosterior(hyper, post.inputs, post.beta, basis, coef, jnp.zeros(E, dtype=post.beta.dtype), ones,
+                          jnp.asarray(bounds))
+    return lr, np.asarray(ranks)
+
+
+def low_rank_model(post: GPPosterior, data: GPData, tol: float, *, sparse: bool, jitter=None,
+                   bucket: int = 25) -> tuple[LowRankPosterior, np.ndarray]:
+    """:func:`low_rank_fitc_posterior` for a FITC ``post`` (``sparse``), else :func:`low_rank_posterior`."""
+    if sparse:
+        return low_rank_fitc_posterior(post, tol, jitter=jitter, bucket=bucket)
+    return low_rank_posterior(post, data, tol, jitter=jitter, bucket=bucket)
 
 
 def low_rank_quad(post: LowRankPosterior, ks: jax.Array):

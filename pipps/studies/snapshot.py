@@ -37,6 +37,8 @@ class Snapshot:
     model: GPPosterior  # the trial's model
     num_points: int  # real GP training points
     data: object = None  # the padded GPData the model was built from
+    jitter: object = None  # (E,) what the posterior's Cholesky added (to K_y, or to K_mm for FITC)
+    sparse: bool = False  # the model is FITC
     programs: dict = dataclasses.field(default_factory=dict, repr=False)  # compiled study programs, reused
 
     def program(self, key, build):
@@ -91,14 +93,15 @@ def load_snapshot(path: str | os.PathLike, trial: int, *, gp_chunk: int | None =
     data = pad_to_capacity(make_data(np.concatenate(xs), np.concatenate(ys)), chunk=cfg.gp_chunk if gp_chunk is None else gp_chunk)
     hyper = GPHyper(*(jnp.asarray(t.gp_hyper[n]) for n in ("log_lengthscale", "log_signal", "log_noise")))
     if sparse:
-        model, _, ok = fitc_posterior(hyper, data, jnp.asarray(t.gp_info["inducing"]), gp_config(cfg))
+        model, jitter, ok = fitc_posterior(hyper, data, jnp.asarray(t.gp_info["inducing"]), gp_config(cfg))
     else:
-        model, _, ok = full_posterior(hyper, data, gp_config(cfg))
+        model, jitter, ok = full_posterior(hyper, data, gp_config(cfg))
     if not bool(np.all(np.asarray(ok))):
         raise FloatingPointError(f"the posterior Cholesky of trial {trial} failed on rebuilding")
     _, unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task))
     policy = unravel(jnp.asarray(result.trials[trial - 1].policy))
-    return Snapshot(str(path), trial, cfg, task, policy, model, int(sum(len(a) for a in xs)), data)
+    return Snapshot(str(path), trial, cfg, task, policy, model, int(sum(len(a) for a in xs)), data,
+                    np.asarray(jitter), sparse)
 
 
 def pilco_direction(snap: Snapshot) -> jax.Array:
