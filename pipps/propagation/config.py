@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 
 from pipps.propagation.combine import COMBINERS
+from pipps.propagation.cost_terms import density_estimation_costs, plain_costs, shaped_costs
 from pipps.propagation.lr import BASELINES, WEIGHTINGS
 
 K_SOURCES = ("batch", "previous")
@@ -78,6 +79,15 @@ class Estimator:
             raise ValueError("DEL is its own estimator: pathwise through the density fit, no LR part, no shaping")
         if self.density_estimation and self.baseline == "thesis":
             raise ValueError("DEL takes the 'previous' or 'none' baseline")
+
+    @property
+    def costs(self):
+        """The cost terms the sweep asks at each step (:mod:`~pipps.propagation.cost_terms`)."""
+        if self.shaping:
+            return shaped_costs()
+        if self.density_estimation:
+            return density_estimation_costs(self.baseline)
+        return plain_costs()
 
     @property
     def total_propagation(self) -> bool:

@@ -27,7 +27,6 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from pipps.particles.forward import ParticleRecord, RolloutConfig, gaussian_resample
-from pipps.propagation import cost_terms
 from pipps.propagation.combine import inverse_variance_k, robust_k, variance_trace
 from pipps.propagation.config import Estimator
 from pipps.propagation.lr import ZetaGrad, biw_lr, mix, plain_lr
@@ -122,22 +121,12 @@ def _choose_k(est: Estimator, var_rp, var_lr, mean_rp, mean_lr, k_prev, has_prev
     return k, k_batch
 
 
-def _step_terms(task: Task, est: Estimator, x_t, cost):
-    """(c for the returns, ∂c/∂x for the pathwise chain or None, the step objective)."""
-    if est.shaping:
-        return cost_terms.shaping_terms(task.cost, x_t, lr_costs=True, gradient=est.pathwise)
-    wants_grad = est.pathwise and not est.density_estimation
-    return cost_terms.plain_terms(task.cost, x_t, cost, gradient=wants_grad)
-
-
 def mean_returns(task: Task, record: ParticleRecord, est: Estimator) -> jax.Array:
     """Per-step mean return-to-go of a forward record, (T,) — the "previous" baseline's source."""
-    def terms(x_t, c):
-        if est.shaping:
-            return cost_terms.shaping_terms(task.cost, x_t, lr_costs=True, gradient=False)[0]
-        return c
+    def step_cost(x_t, c):
+        return est.costs.step(task.cost, x_t, c, None, None, gradient=False).cost
 
-    c = jax.vmap(terms)(record.x_next, record.cost)  # (T, P)
+    c = jax.vmap(step_cost)(record.x_next, record.cost)  # (T, P)
     returns = jnp.cumsum(c[::-1], axis=0)[::-1]
     return jnp.mean(returns, axis=-1)
 
@@ -159,14 +148,12 @@ def backward_sweep(
     def step(carry, xs):
         G, cot_x, contrib = carry
         x_prev, mean, std, eps, x_t, cost, jm, js, b_prev, k_prev = xs
-        c, dc, objective = _step_terms(task, est, x_t, cost)
-        G = G + c
-        if est.density_estimation:
-            dc = cost_terms.del_gradient(x_t, G, b_prev if est.baseline == "previous" else 0.0)
+        terms = est.costs.step(task.cost, x_t, cost, G, b_prev, gradient=est.pathwise)
+        G = G + terms.cost
 
         gammas = []
         if est.pathwise:
-            gammas.append(_rp_zeta(cot_x + dc, mean, std, eps, config))
+            gammas.append(_rp_zeta(cot_x + terms.gradient, mean, std, eps, config))
         if est.likelihood_ratio:
             if est.weighting == "plain":
                 gammas.append(plain_lr(x_t, mean, std, G))
@@ -190,7 +177,7 @@ def backward_sweep(
             new_cot_x = cx[0] + gammas[0].mean if est.pathwise else cot_x
 
         finite = jnp.all(jnp.isfinite(g))
-        diag = StepDiagnostics(k, k_batch, var_rp, var_lr, jnp.mean(G), objective, ~finite)
+        diag = StepDiagnostics(k, k_batch, var_rp, var_lr, jnp.mean(G), terms.objective, ~finite)
         return (G, new_cot_x, contrib + g), diag
 
     xs = (
