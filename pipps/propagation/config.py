@@ -27,6 +27,7 @@ import dataclasses
 from pipps.propagation.combine import COMBINERS
 from pipps.propagation.cost_terms import density_estimation_costs, plain_costs, shaped_costs
 from pipps.propagation.lr import BASELINES, WEIGHTINGS
+from pipps.propagation.parts import biw_lr, pathwise, plain_lr
 
 K_SOURCES = ("batch", "previous")
 
@@ -88,6 +89,12 @@ class Estimator:
         if self.density_estimation:
             return density_estimation_costs(self.baseline)
         return plain_costs()
+
+    @property
+    def parts(self) -> tuple:
+        """The gradient parts, pathwise first (:mod:`~pipps.propagation.parts`)."""
+        lr_part = (plain_lr() if self.weighting == "plain" else biw_lr(self.baseline),)
+        return (pathwise(),) * self.pathwise + lr_part * self.likelihood_ratio
 
     @property
     def total_propagation(self) -> bool:

@@ -26,10 +26,11 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-from pipps.particles.forward import ParticleRecord, RolloutConfig, gaussian_resample
+from pipps.particles.forward import ParticleRecord, RolloutConfig
 from pipps.propagation.combine import inverse_variance_k, robust_k, variance_trace
 from pipps.propagation.config import Estimator
-from pipps.propagation.lr import ZetaGrad, biw_lr, mix, plain_lr
+from pipps.propagation.lr import ZetaGrad, mix
+from pipps.propagation.parts import StepInputs
 from pipps.tasks.base import Task
 
 
@@ -98,14 +99,6 @@ def _to_z(gam: ZetaGrad, jac_mean, jac_std) -> jax.Array:
     return ct
 
 
-def _rp_zeta(a: jax.Array, mean, std, eps, config: RolloutConfig) -> ZetaGrad:
-    if config.resampling == "gaussian":
-        _, vjp = jax.vjp(lambda m, s: gaussian_resample(m, s, eps, config.resample_jitter), mean, std)
-        gm, gs = vjp(a)
-        return ZetaGrad(gm, gs)
-    return ZetaGrad(a, a * eps)
-
-
 def _choose_k(est: Estimator, var_rp, var_lr, mean_rp, mean_lr, k_prev, has_prev, P):
     if est.combiner == "robust":
         k_batch = robust_k(var_rp, var_lr, mean_rp, mean_lr, P, est.robust_gamma, est.robust_z)
@@ -151,14 +144,8 @@ def backward_sweep(
         terms = est.costs.step(task.cost, x_t, cost, G, b_prev, gradient=est.pathwise)
         G = G + terms.cost
 
-        gammas = []
-        if est.pathwise:
-            gammas.append(_rp_zeta(cot_x + terms.gradient, mean, std, eps, config))
-        if est.likelihood_ratio:
-            if est.weighting == "plain":
-                gammas.append(plain_lr(x_t, mean, std, G))
-            else:
-                gammas.append(biw_lr(x_t, mean, std, G, est.baseline, b_prev))
+        inputs = StepInputs(x_t, mean, std, eps, G, b_prev, cot_x, terms.gradient)
+        gammas = [part.zeta(inputs, config) for part in est.parts]
         ct_z = jnp.stack([_to_z(g, jm, js) for g in gammas])
         g_theta, cx = _pull_back(task, policy, x_prev, ct_z, with_x=est.pathwise)
 
