@@ -14,19 +14,20 @@ import dataclasses
 import jax
 
 
-def strategy(cls=None, *, numbers: tuple[str, ...] = ()):
-    """Make ``cls`` a frozen dataclass registered as a pytree whose leaves are the fields ``numbers``.
+def strategy(cls=None, *, traced: tuple[str, ...] = ()):
+    """Make ``cls`` a frozen dataclass registered as a pytree whose children are the fields ``traced``.
 
-    Every other field is static structure. Use as ``@strategy`` or ``@strategy(numbers=("gamma",))``.
+    A traced field holds a number (a leaf) or another piece (whose own traced fields are leaves);
+    every other field is static structure. Use as ``@strategy`` or ``@strategy(traced=("gamma",))``.
     """
 
     def wrap(c):
         c = dataclasses.dataclass(frozen=True)(c)
         names = [f.name for f in dataclasses.fields(c)]
-        unknown = set(numbers) - set(names)
+        unknown = set(traced) - set(names)
         if unknown:
-            raise TypeError(f"{c.__name__}: numbers {sorted(unknown)} are not fields")
-        meta = [n for n in names if n not in numbers]
-        return jax.tree_util.register_dataclass(c, data_fields=list(numbers), meta_fields=meta)
+            raise TypeError(f"{c.__name__}: traced {sorted(unknown)} are not fields")
+        meta = [n for n in names if n not in traced]
+        return jax.tree_util.register_dataclass(c, data_fields=list(traced), meta_fields=meta)
 
     return wrap if cls is None else wrap(cls)
