@@ -152,3 +152,15 @@ def test_robust_combiner_is_lr_at_zero_tolerance_and_inverse_variance_at_infinit
     np.testing.assert_allclose(flat(at_inf.grad), flat(iv.grad), rtol=1e-10, atol=1e-15)
     k_iv = np.asarray(iv.diagnostics.k_lr)
     assert np.all((k_iv > 0.0) & (k_iv < 1.0))  # the two ends really differ
+
+
+def test_tp_plain_is_total_propagation_of_rp_and_plain_lr(system):
+    assert estimator("tp_plain") == estimator("tp", weighting="plain") == compose(
+        plain_costs(), pathwise(), plain_lr(), combiner=inverse_variance()
+    )
+    rp, lr_plain = one(system, estimator("rp")), one(system, estimator("lr_plain"))
+    np.testing.assert_allclose(flat(one(system, estimator("tp_plain", k_lr=0.0)).grad), flat(rp.grad), rtol=1e-11, atol=1e-15)
+    np.testing.assert_allclose(flat(one(system, estimator("tp_plain", k_lr=1.0)).grad), flat(lr_plain.grad), rtol=1e-11, atol=1e-15)
+    mixed = one(system, estimator("tp_plain", k_lr="batch"))
+    k = np.asarray(mixed.diagnostics.k_lr)
+    assert np.all((k > 0.0) & (k < 1.0)) and np.all(np.isfinite(flat(mixed.grad)))

@@ -15,6 +15,7 @@ Named estimators (:func:`estimator`), with the thesis' table names:
 ``lr``     batch-importance-weighted LR (§3)
 ``lr_plain`` plain LR with the leave-one-out baseline (§3, for comparison and tests)
 ``tp``     total propagation of RP and BIW-LR (§4, Alg. 5)
+``tp_plain`` total propagation of RP and plain LR (§3–§4; unbiased with the "previous" k_LR)
 ``gtp``    Gaussian-shaped total propagation (§5, Alg. 6)
 ``glr``    Gaussian-shaped LR (§5)
 ``del``    density-estimation LR (§6)
@@ -127,6 +128,7 @@ ESTIMATORS = {
     "lr": compose(plain_costs(), biw_lr()),
     "lr_plain": compose(plain_costs(), plain_lr()),
     "tp": compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance()),
+    "tp_plain": compose(plain_costs(), pathwise(), plain_lr(), combiner=inverse_variance()),
     "gtp": compose(shaped_costs(), pathwise(), biw_lr(), combiner=inverse_variance()),
     "glr": compose(shaped_costs(), biw_lr()),
     "del": compose(density_estimation_costs(), pathwise()),
