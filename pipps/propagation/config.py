@@ -1,8 +1,12 @@
-"""Estimator configuration: choosing an estimator is configuration (estimators.md §2–§9).
+"""Estimators composed from pieces: cost terms, gradient parts and a combiner (estimators.md §2–§9).
 
-An :class:`Estimator` is static (a jit static argument). Which parts of the backward sweep
-exist is decided at trace time from it: an RP estimator contains no LR operations, an LR
-estimator no pathwise chain, and nothing computes Gaussian-shaping fits unless shaping is on.
+An :class:`Estimator` is the strategy the backward sweep runs: its cost terms
+(:mod:`~pipps.propagation.cost_terms`) say what each particle adds to the returns and to the
+pathwise chain, its parts (:mod:`~pipps.propagation.parts`) turn a step into ζ-cotangents, and its
+combiner (:mod:`~pipps.propagation.combine`) weighs the parts. :func:`compose` builds one and refuses
+a combination that means nothing. What exists in the traced program follows from the pieces: an RP
+estimator contains no LR operations, an LR estimator no pathwise chain, and nothing computes
+Gaussian-shaping fits unless the cost terms are shaped.
 
 Named estimators (:func:`estimator`), with the thesis' table names:
 
@@ -11,111 +15,209 @@ Named estimators (:func:`estimator`), with the thesis' table names:
 ``lr``     batch-importance-weighted LR (§3)
 ``lr_plain`` plain LR with the leave-one-out baseline (§3, for comparison and tests)
 ``tp``     total propagation of RP and BIW-LR (§4, Alg. 5)
+``tp_plain`` total propagation of RP and plain LR (§3–§4; unbiased with the "previous" k_LR)
 ``gtp``    Gaussian-shaped total propagation (§5, Alg. 6)
 ``glr``    Gaussian-shaped LR (§5)
 ``del``    density-estimation LR (§6)
 =========  ==========================================================================
 
-The rollout variants (``−σ_f``, ``+σ_n``, GR, fixed seed) are settings of
-:class:`pipps.particles.RolloutConfig` and of the optimizer, not of the estimator.
+:func:`thesis_estimator` gives the thesis' own (biased) variants: the eq. 4.3 baseline and
+``k_LR`` from the same batch. The rollout variants (``−σ_f``, ``+σ_n``, GR, fixed seed) are
+settings of :class:`pipps.particles.RolloutConfig` and of the optimizer, not of the estimator.
 """
 
 from __future__ import annotations
 
-import dataclasses
+from typing import Any
 
-from pipps.propagation.combine import COMBINERS
-from pipps.propagation.lr import BASELINES, WEIGHTINGS
+from pipps.propagation.combine import COMBINERS, inverse_variance, robust, single
+from pipps.propagation.cost_terms import (
+    DensityEstimationCosts,
+    density_estimation_costs,
+    plain_costs,
+    shaped_costs,
+)
+from pipps.propagation.lr import WEIGHTINGS
+from pipps.propagation.parts import LIKELIHOOD_RATIO, PATHWISE, BiwLR, PlainLR, biw_lr, pathwise, plain_lr
+from pipps.propagation.strategy import strategy
 
-K_SOURCES = ("batch", "previous")
+_KINDS = ((PATHWISE,), (LIKELIHOOD_RATIO,), (PATHWISE, LIKELIHOOD_RATIO))
 
 
-@dataclasses.dataclass(frozen=True)
+def _composition_problem(costs, parts, combiner) -> str | None:
+    """Why (costs, parts, combiner) is not an estimator, or None."""
+    kinds = tuple(getattr(p, "kind", None) for p in parts)
+    if not parts:
+        return "an estimator needs a gradient part: pathwise(), biw_lr() or plain_lr(), or a pathwise and an LR part"
+    if kinds not in _KINDS:
+        return f"an estimator has one pathwise part, one likelihood-ratio part, or one of each (pathwise first); got {kinds}"
+    if combiner.num_parts != len(parts):
+        if len(parts) == 2:
+            return f"a pathwise and an LR part need a combiner that weighs them (inverse_variance() or robust()), not {combiner.name!r}"
+        return f"the {combiner.name!r} combiner weighs a pathwise against an LR part; a lone {kinds[0]} part takes single()"
+    if LIKELIHOOD_RATIO in kinds and not costs.feeds_likelihood_ratio:
+        return "density-estimation cost terms replace the pathwise cost gradient (estimators.md §6): compose them with a lone pathwise part"
+    return None
+
+
+@strategy(traced=("costs", "parts", "combiner"))
 class Estimator:
-    """Static description of a gradient estimator.
+    """A gradient estimator: cost terms, one or two gradient parts (pathwise first) and a combiner.
 
-    Attributes:
-      pathwise: the RP part (pathwise derivatives through model and policy) is on.
-      likelihood_ratio: the LR part is on. Both on is total propagation.
-      weighting: "biw" (batch importance weights, eq. 4.2) or "plain".
-      baseline: BIW baseline, "previous" (library default, unbiased), "thesis" (eq. 4.3, biased)
-        or "none". Plain LR always uses the leave-one-out mean.
-      k_lr: where TP's per-step weight comes from: "batch" (the thesis), "previous" (library
-        default: the previous iteration's per-step weight; the first iteration uses the batch),
-        or a number in [0, 1] (fixed; 0 is RP and 1 is LR, for tests).
-      combiner: "inverse_variance" (thesis) or "robust" (estimators.md §9).
-      robust_gamma, robust_z: the robust combiner's bias threshold γ and confidence multiplier.
-      shaping: Gaussian shaping (GTP/GLR, §5).
-      density_estimation: DEL (§6); uses ``baseline`` ("previous" or "none").
+    Hashable (a jit static argument) and a pytree whose leaves are its numbers (a fixed ``k_LR``,
+    the robust combiner's ``γ`` and ``z``): passed as a jit argument, a new number does not recompile.
     """
 
-    pathwise: bool = True
-    likelihood_ratio: bool = False
-    weighting: str = "biw"
-    baseline: str = "previous"
-    k_lr: str | float = "previous"
-    combiner: str = "inverse_variance"
-    robust_gamma: float = float("inf")
-    robust_z: float = 2.0
-    shaping: bool = False
-    density_estimation: bool = False
+    costs: Any
+    parts: tuple
+    combiner: Any
 
     def __post_init__(self):
-        if not (self.pathwise or self.likelihood_ratio):
-            raise ValueError("an estimator needs the pathwise part, the LR part, or both")
-        if self.weighting not in WEIGHTINGS:
-            raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {self.weighting!r}")
-        if self.baseline not in BASELINES:
-            raise ValueError(f"baseline must be one of {BASELINES}, got {self.baseline!r}")
-        if isinstance(self.k_lr, str):
-            if self.k_lr not in K_SOURCES:
-                raise ValueError(f"k_lr must be one of {K_SOURCES} or a number in [0, 1], got {self.k_lr!r}")
-        elif not 0.0 <= float(self.k_lr) <= 1.0:
-            raise ValueError(f"a fixed k_lr must lie in [0, 1], got {self.k_lr}")
-        if self.combiner not in COMBINERS:
-            raise ValueError(f"combiner must be one of {COMBINERS}, got {self.combiner!r}")
-        if self.density_estimation and (self.likelihood_ratio or self.shaping or not self.pathwise):
-            raise ValueError("DEL is its own estimator: pathwise through the density fit, no LR part, no shaping")
-        if self.density_estimation and self.baseline == "thesis":
-            raise ValueError("DEL takes the 'previous' or 'none' baseline")
+        problem = _composition_problem(self.costs, self.parts, self.combiner)
+        if problem:
+            raise ValueError(problem)
+
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return tuple(p.kind for p in self.parts)
+
+    @property
+    def pathwise(self) -> bool:
+        """A pathwise part is present: the sweep carries ∂G/∂x and asks for the cost gradient."""
+        return PATHWISE in self.kinds
+
+    @property
+    def likelihood_ratio(self) -> bool:
+        return LIKELIHOOD_RATIO in self.kinds
 
     @property
     def total_propagation(self) -> bool:
-        return self.pathwise and self.likelihood_ratio
+        return len(self.parts) == 2
 
     @property
     def needs_previous_baseline(self) -> bool:
-        lr_biw = self.likelihood_ratio and self.weighting == "biw"
-        return (lr_biw or self.density_estimation) and self.baseline == "previous"
+        """A piece reads the previous iteration's mean return (estimators.md §3, §6)."""
+        return any(piece.uses_previous_baseline for piece in (self.costs, *self.parts))
+
+    @property
+    def baseline(self) -> str | None:
+        """The BIW-LR part's or DEL's baseline; None where no piece takes one."""
+        for piece in (self.costs, *self.parts):
+            if isinstance(piece, (BiwLR, DensityEstimationCosts)):
+                return piece.baseline
+        return None
+
+    @property
+    def k_lr(self) -> str | float | None:
+        """Where total propagation's weight comes from ("batch", "previous" or a number); None for one part."""
+        return self.combiner.k_lr
 
 
-NAMED = ("rp", "lr", "lr_plain", "tp", "gtp", "glr", "del")
+def compose(costs, *parts, combiner=None) -> Estimator:
+    """An estimator from its pieces; ``combiner`` defaults to :func:`single` for one part."""
+    parts = tuple(sorted(parts, key=lambda p: getattr(p, "kind", None) != PATHWISE))
+    if combiner is None:
+        if len(parts) == 2:
+            raise ValueError("a pathwise and an LR part need a combiner that weighs them: inverse_variance() or robust()")
+        combiner = single()
+    return Estimator(costs, parts, combiner)
 
 
-def estimator(name: str, **overrides) -> Estimator:
-    """A named estimator with the library defaults, e.g. ``estimator("tp", k_lr="batch")``."""
-    base = {
-        "rp": dict(pathwise=True, likelihood_ratio=False),
-        "lr": dict(pathwise=False, likelihood_ratio=True),
-        "lr_plain": dict(pathwise=False, likelihood_ratio=True, weighting="plain"),
-        "tp": dict(pathwise=True, likelihood_ratio=True),
-        "gtp": dict(pathwise=True, likelihood_ratio=True, shaping=True),
-        "glr": dict(pathwise=False, likelihood_ratio=True, shaping=True),
-        "del": dict(pathwise=True, likelihood_ratio=False, density_estimation=True),
-    }
-    if name not in base:
-        raise ValueError(f"unknown estimator {name!r}; choose one of {NAMED}")
-    unknown = set(overrides) - {f.name for f in dataclasses.fields(Estimator)}
+ESTIMATORS = {
+    "rp": compose(plain_costs(), pathwise()),
+    "lr": compose(plain_costs(), biw_lr()),
+    "lr_plain": compose(plain_costs(), plain_lr()),
+    "tp": compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance()),
+    "tp_plain": compose(plain_costs(), pathwise(), plain_lr(), combiner=inverse_variance()),
+    "gtp": compose(shaped_costs(), pathwise(), biw_lr(), combiner=inverse_variance()),
+    "glr": compose(shaped_costs(), biw_lr()),
+    "del": compose(density_estimation_costs(), pathwise()),
+}
+
+THESIS_ESTIMATORS = {
+    "lr": compose(plain_costs(), biw_lr("thesis")),
+    "tp": compose(plain_costs(), pathwise(), biw_lr("thesis"), combiner=inverse_variance("batch")),
+    "gtp": compose(shaped_costs(), pathwise(), biw_lr("thesis"), combiner=inverse_variance("batch")),
+    "glr": compose(shaped_costs(), biw_lr("thesis")),
+}
+
+NAMED = tuple(ESTIMATORS)
+
+SETTINGS = ("weighting", "baseline", "k_lr", "combiner", "robust_gamma", "robust_z")
+_COMBINER_SETTINGS = ("k_lr", "combiner", "robust_gamma", "robust_z")
+
+
+def _reweighted(name: str, parts: tuple, weighting: str) -> tuple:
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+    if LIKELIHOOD_RATIO not in (p.kind for p in parts):
+        raise ValueError(f"weighting applies to a likelihood-ratio part, and {name!r} has none")
+
+    def swap(p):
+        if p.kind != LIKELIHOOD_RATIO:
+            return p
+        if weighting == "plain":
+            return plain_lr()
+        return p if isinstance(p, BiwLR) else biw_lr()
+
+    return tuple(swap(p) for p in parts)
+
+
+def _rebaselined(name: str, costs, parts: tuple, baseline: str):
+    if isinstance(costs, DensityEstimationCosts):
+        return density_estimation_costs(baseline), parts
+    if any(isinstance(p, BiwLR) for p in parts):
+        return costs, tuple(biw_lr(baseline) if isinstance(p, BiwLR) else p for p in parts)
+    if any(isinstance(p, PlainLR) for p in parts):
+        raise ValueError(f"baseline: plain LR always uses the leave-one-out mean (estimators.md §3), so {name!r} takes none")
+    raise ValueError(f"baseline applies to BIW-LR or DEL, and {name!r} has neither")
+
+
+def _recombined(name: str, combiner, num_parts: int, settings: dict):
+    if num_parts != 2:
+        raise ValueError(f"{sorted(settings)} only apply to total propagation (a pathwise and an LR part); {name!r} has one part")
+    rule = settings.get("combiner", combiner.name)
+    k_lr = settings.get("k_lr", combiner.k_lr)
+    if rule == "robust":
+        gamma = settings.get("robust_gamma", getattr(combiner, "gamma", float("inf")))
+        z = settings.get("robust_z", getattr(combiner, "z", 2.0))
+        return robust(gamma, z, k_lr=k_lr)
+    if rule == "inverse_variance":
+        extra = sorted({"robust_gamma", "robust_z"} & set(settings))
+        if extra:
+            raise ValueError(f"{extra} belong to the robust combiner; pass combiner='robust' as well")
+        return inverse_variance(k_lr)
+    raise ValueError(f"combiner must be one of {COMBINERS}, got {rule!r}")
+
+
+def with_settings(name: str, est: Estimator, **settings) -> Estimator:
+    """``est`` with some of its pieces' settings replaced; a setting no piece takes is refused by name."""
+    unknown = set(settings) - set(SETTINGS)
     if unknown:
-        raise ValueError(f"unknown estimator settings {sorted(unknown)}")
-    return Estimator(**{**base[name], **overrides})
+        raise ValueError(f"unknown estimator settings {sorted(unknown)}; the settings are {SETTINGS}, the name chooses the rest")
+    costs, parts, combiner = est.costs, est.parts, est.combiner
+    if "weighting" in settings:
+        parts = _reweighted(name, parts, settings["weighting"])
+    if "baseline" in settings:
+        costs, parts = _rebaselined(name, costs, parts, settings["baseline"])
+    combining = {k: settings[k] for k in _COMBINER_SETTINGS if k in settings}
+    if combining:
+        combiner = _recombined(name, combiner, len(parts), combining)
+    return Estimator(costs, parts, combiner)
 
 
-def thesis_estimator(name: str, **overrides) -> Estimator:
+def _check_name(name: str) -> None:
+    if name not in ESTIMATORS:
+        raise ValueError(f"unknown estimator {name!r}; choose one of {NAMED}")
+
+
+def estimator(name: str, **settings) -> Estimator:
+    """A named estimator with the library defaults, e.g. ``estimator("tp", k_lr="batch")``."""
+    _check_name(name)
+    return with_settings(name, ESTIMATORS[name], **settings)
+
+
+def thesis_estimator(name: str, **settings) -> Estimator:
     """The thesis' own (biased) choices: the eq. 4.3 baseline and k_LR from the same batch."""
-    extra = {}
-    if name in ("lr", "tp", "gtp", "glr"):
-        extra["baseline"] = "thesis"
-    if name in ("tp", "gtp"):
-        extra["k_lr"] = "batch"
-    return estimator(name, **{**extra, **overrides})
+    _check_name(name)
+    return with_settings(name, THESIS_ESTIMATORS.get(name, ESTIMATORS[name]), **settings)

@@ -1,7 +1,8 @@
 """What each particle contributes at a step: its cost for the returns and its cost gradient.
 
-The reverse sweep asks, at step t, for ``c_i`` (added to the returns ``G``) and ``∂c_i/∂x_i``
-(started down the pathwise chain). Three sources:
+The reverse sweep asks its estimator's cost terms, at step t, for ``c_i`` (added to the returns
+``G``) and ``∂c_i/∂x_i`` (started down the pathwise chain): a :class:`StepCosts`. Three kinds,
+built by :func:`plain_costs`, :func:`shaped_costs` and :func:`density_estimation_costs`:
 
 * the plain cost: ``c(x_i)`` and ``∇c(x_i)``;
 * Gaussian shaping (estimators.md §5): with the particle fit ``μ̂ = mean_i x_i``,
@@ -18,8 +19,22 @@ particle's gradient is ``∂G_i/∂θ`` and the estimate is their mean.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
+
+from pipps.propagation.strategy import strategy
+
+DEL_BASELINES = ("previous", "none")
+
+
+class StepCosts(NamedTuple):
+    """One step's cost terms, per particle."""
+
+    cost: jax.Array  # c_i, added to the returns G_i, (P,)
+    gradient: jax.Array | None  # ∂c_i/∂x_i started down the pathwise chain, (P, D); None if not asked for
+    objective: jax.Array  # the step's term of the objective being differentiated
 
 
 def plain_terms(cost, x: jax.Array, c: jax.Array, *, gradient: bool):
@@ -73,3 +88,68 @@ def del_gradient(x: jax.Array, returns: jax.Array, baseline: jax.Array, jitter: 
         return jnp.mean(advantage * gaussian_logpdf(samples, mu, cov))
 
     return P * jax.grad(surrogate)(x)
+
+
+@strategy
+class PlainCosts:
+    """The particles' own costs ``c(x_i)`` and ``∇c(x_i)`` (estimators.md §1–§4)."""
+
+    feeds_likelihood_ratio = True
+    uses_previous_baseline = False
+
+    def step(self, cost, x, c, returns_next, previous_baseline, *, gradient: bool) -> StepCosts:
+        del returns_next, previous_baseline
+        return StepCosts(*plain_terms(cost, x, c, gradient=gradient))
+
+
+@strategy
+class ShapedCosts:
+    """Gaussian shaping (estimators.md §5): ``g_i`` for the returns, ``P·dĒ/dx_i`` for the pathwise chain."""
+
+    feeds_likelihood_ratio = True
+    uses_previous_baseline = False
+
+    def step(self, cost, x, c, returns_next, previous_baseline, *, gradient: bool) -> StepCosts:
+        del c, returns_next, previous_baseline
+        return StepCosts(*shaping_terms(cost, x, lr_costs=True, gradient=gradient))
+
+
+@strategy
+class DensityEstimationCosts:
+    """DEL (estimators.md §6): plain costs for the returns, ``P·∂S/∂x_i`` in place of ``∇c(x_i)``.
+
+    ``baseline``: ``b_t`` of the surrogate, "previous" (the previous iteration's mean return) or "none".
+    """
+
+    baseline: str = "previous"
+
+    feeds_likelihood_ratio = False
+
+    @property
+    def uses_previous_baseline(self) -> bool:
+        return self.baseline == "previous"
+
+    def step(self, cost, x, c, returns_next, previous_baseline, *, gradient: bool) -> StepCosts:
+        del cost
+        dc = None
+        if gradient:
+            b = previous_baseline if self.baseline == "previous" else 0.0
+            dc = del_gradient(x, returns_next + c, b)
+        return StepCosts(c, dc, jnp.mean(c))
+
+
+def plain_costs() -> PlainCosts:
+    """Cost terms of RP, LR and TP: the particles' own costs."""
+    return PlainCosts()
+
+
+def shaped_costs() -> ShapedCosts:
+    """Cost terms of GTP and GLR: the Gaussian-shaped costs (estimators.md §5)."""
+    return ShapedCosts()
+
+
+def density_estimation_costs(baseline: str = "previous") -> DensityEstimationCosts:
+    """Cost terms of DEL (estimators.md §6) with the surrogate's baseline, "previous" or "none"."""
+    if baseline not in DEL_BASELINES:
+        raise ValueError(f"DEL's baseline must be one of {DEL_BASELINES}, got {baseline!r}")
+    return DensityEstimationCosts(baseline)

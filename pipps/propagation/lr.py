@@ -34,16 +34,6 @@ class ZetaGrad(NamedTuple):
     std: jax.Array  # (P, D)
 
 
-def mix(k: jax.Array, lr: jax.Array, rp: jax.Array) -> jax.Array:
-    """k·lr + (1 − k)·rp, exactly lr at k = 1 and exactly rp at k = 0 even if the other is not finite."""
-    return jnp.where(k == 1.0, lr, jnp.where(k == 0.0, rp, k * lr + (1.0 - k) * rp))
-
-
-def zeta_mix(k: jax.Array, lr: ZetaGrad, rp: ZetaGrad) -> ZetaGrad:
-    """λ = k·γ^LR + (1 − k)·γ^RP (estimators.md §4, step 7)."""
-    return ZetaGrad(mix(k, lr.mean, rp.mean), mix(k, lr.std, rp.std))
-
-
 def _centred(x: jax.Array, mean: jax.Array) -> tuple[jax.Array, jax.Array]:
     """x and μ shifted by the mean of μ over particles (see :func:`log_density_matrix`)."""
     c = jnp.mean(mean, axis=0)

@@ -1,21 +1,22 @@
 """The custom backward pass: one reverse sweep over time (thesis Alg. 5; estimators.md §2–§6).
 
 The sweep runs ``t = T, …, 1`` over the :class:`~pipps.particles.forward.ParticleRecord` and
-carries, per particle, the returns ``G_{i,t}`` and — when the pathwise part is on — the
-pathwise derivative of the return with respect to the particle, ``∂G_i/∂x_{i,t}``. At each step:
+carries, per particle, the returns ``G_{i,t}`` and — when the estimator has a pathwise part — the
+pathwise derivative of the return with respect to the particle, ``∂G_i/∂x_{i,t}``. The estimator
+(:class:`~pipps.propagation.config.Estimator`) is the strategy; at each step the sweep
 
-1. ``G_{i,t} = G_{i,t+1} + c_{i,t}`` (:mod:`~pipps.propagation.cost_terms`);
-2. RP in ζ-space: ``γ^RP_{i,t} = a_i ∂x_{i,t}/∂ζ_{i,t}`` with ``a_i = ∂G_i/∂x_{i,t} + ∂c_i/∂x_{i,t}``;
-   for ``x = μ + s ⊙ ε`` that is ``(a, a ⊙ ε)``, for GR the VJP of the resampling;
-3. LR in ζ-space (:mod:`~pipps.propagation.lr`);
-4. both to θ through the direct path ``∂ζ_{i,t}/∂u_{i,t−1} · ∂u_{i,t−1}/∂θ`` — per particle, with
-   the model Jacobians recorded by the forward pass and a VJP of the (cheap) map
-   ``x ↦ z = [x̃[I]; π(x̃[P]; θ)]``;
-5. TP's weight ``k_LR`` from the per-particle gradient variances (:mod:`~pipps.propagation.combine`);
-6. the estimate accumulates ``k·g^LR + (1−k)·g^RP`` per particle;
-7. ``λ = k γ^LR + (1−k) γ^RP`` is passed back through ``dζ_{i,t}/dx_{i,t−1}``.
+1. asks its cost terms for ``c_{i,t}`` and ``∂c_i/∂x_{i,t}`` and sets ``G_{i,t} = G_{i,t+1} + c_{i,t}``
+   (:mod:`~pipps.propagation.cost_terms`);
+2. asks each of its parts for a ζ-cotangent ``γ_{i,t}`` (:mod:`~pipps.propagation.parts`);
+3. carries every γ to θ through the direct path ``∂ζ_{i,t}/∂u_{i,t−1} · ∂u_{i,t−1}/∂θ`` — per
+   particle, with the model Jacobians recorded by the forward pass and one VJP of the (cheap) map
+   ``x ↦ z = [x̃[I]; π(x̃[P]; θ)]`` for all parts at once, which also yields each part's message
+   ``∂G/∂x_{i,t−1}`` when a pathwise part reads it;
+4. hands the per-particle θ-gradients and messages to its combiner, which chooses ``k_LR`` and
+   returns the step's contribution and the message ``λ`` passed back
+   (:mod:`~pipps.propagation.combine`).
 
-What is computed is fixed at trace time by the :class:`~pipps.propagation.config.Estimator`.
+The sweep itself does not depend on which estimator it runs.
 """
 
 from __future__ import annotations
@@ -26,11 +27,10 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
-from pipps.particles.forward import ParticleRecord, RolloutConfig, gaussian_resample
-from pipps.propagation import cost_terms
-from pipps.propagation.combine import inverse_variance_k, robust_k, variance_trace
+from pipps.particles.forward import ParticleRecord, RolloutConfig
 from pipps.propagation.config import Estimator
-from pipps.propagation.lr import ZetaGrad, biw_lr, mix, plain_lr
+from pipps.propagation.lr import ZetaGrad
+from pipps.propagation.parts import LIKELIHOOD_RATIO, PATHWISE, StepInputs
 from pipps.tasks.base import Task
 
 
@@ -99,45 +99,12 @@ def _to_z(gam: ZetaGrad, jac_mean, jac_std) -> jax.Array:
     return ct
 
 
-def _rp_zeta(a: jax.Array, mean, std, eps, config: RolloutConfig) -> ZetaGrad:
-    if config.resampling == "gaussian":
-        _, vjp = jax.vjp(lambda m, s: gaussian_resample(m, s, eps, config.resample_jitter), mean, std)
-        gm, gs = vjp(a)
-        return ZetaGrad(gm, gs)
-    return ZetaGrad(a, a * eps)
-
-
-def _choose_k(est: Estimator, var_rp, var_lr, mean_rp, mean_lr, k_prev, has_prev, P):
-    if est.combiner == "robust":
-        k_batch = robust_k(var_rp, var_lr, mean_rp, mean_lr, P, est.robust_gamma, est.robust_z)
-    else:
-        k_batch = inverse_variance_k(var_rp, var_lr)
-    if isinstance(est.k_lr, str):
-        k = k_batch if est.k_lr == "batch" else jnp.where(has_prev, k_prev, k_batch)
-    else:
-        k = jnp.asarray(float(est.k_lr), dtype=var_rp.dtype)
-    # a part whose gradients are not finite gets no weight, whatever the source of k
-    k = jnp.where(jnp.isfinite(var_rp), k, 1.0)
-    k = jnp.where(jnp.isfinite(var_lr), k, jnp.where(jnp.isfinite(var_rp), 0.0, k))
-    return k, k_batch
-
-
-def _step_terms(task: Task, est: Estimator, x_t, cost):
-    """(c for the returns, ∂c/∂x for the pathwise chain or None, the step objective)."""
-    if est.shaping:
-        return cost_terms.shaping_terms(task.cost, x_t, lr_costs=True, gradient=est.pathwise)
-    wants_grad = est.pathwise and not est.density_estimation
-    return cost_terms.plain_terms(task.cost, x_t, cost, gradient=wants_grad)
-
-
 def mean_returns(task: Task, record: ParticleRecord, est: Estimator) -> jax.Array:
     """Per-step mean return-to-go of a forward record, (T,) — the "previous" baseline's source."""
-    def terms(x_t, c):
-        if est.shaping:
-            return cost_terms.shaping_terms(task.cost, x_t, lr_costs=True, gradient=False)[0]
-        return c
+    def step_cost(x_t, c):
+        return est.costs.step(task.cost, x_t, c, None, None, gradient=False).cost
 
-    c = jax.vmap(terms)(record.x_next, record.cost)  # (T, P)
+    c = jax.vmap(step_cost)(record.x_next, record.cost)  # (T, P)
     returns = jnp.cumsum(c[::-1], axis=0)[::-1]
     return jnp.mean(returns, axis=-1)
 
@@ -155,43 +122,30 @@ def backward_sweep(
     n_theta = ravel_pytree(policy)[0].size
     dtype = record.x.dtype
     nan = jnp.asarray(jnp.nan, dtype)
+    kinds = est.kinds
 
     def step(carry, xs):
         G, cot_x, contrib = carry
         x_prev, mean, std, eps, x_t, cost, jm, js, b_prev, k_prev = xs
-        c, dc, objective = _step_terms(task, est, x_t, cost)
-        G = G + c
-        if est.density_estimation:
-            dc = cost_terms.del_gradient(x_t, G, b_prev if est.baseline == "previous" else 0.0)
+        terms = est.costs.step(task.cost, x_t, cost, G, b_prev, gradient=est.pathwise)
+        G = G + terms.cost
 
-        gammas = []
-        if est.pathwise:
-            gammas.append(_rp_zeta(cot_x + dc, mean, std, eps, config))
-        if est.likelihood_ratio:
-            if est.weighting == "plain":
-                gammas.append(plain_lr(x_t, mean, std, G))
-            else:
-                gammas.append(biw_lr(x_t, mean, std, G, est.baseline, b_prev))
+        inputs = StepInputs(x_t, mean, std, eps, G, b_prev, cot_x, terms.gradient)
+        gammas = [part.zeta(inputs, config) for part in est.parts]
         ct_z = jnp.stack([_to_z(g, jm, js) for g in gammas])
         g_theta, cx = _pull_back(task, policy, x_prev, ct_z, with_x=est.pathwise)
 
-        var_rp = var_lr = nan
-        k = k_batch = jnp.asarray(0.0 if est.pathwise else 1.0, dtype)
-        if est.total_propagation:
-            g_rp, g_lr = g_theta[0], g_theta[1]
-            var_rp, var_lr = variance_trace(g_rp), variance_trace(g_lr)
-            k, k_batch = _choose_k(est, var_rp, var_lr, g_rp.mean(0), g_lr.mean(0), k_prev, previous.has_previous, P)
-            g = mix(k, g_lr, g_rp)
-            new_cot_x = mix(k, cx[1] + gammas[1].mean, cx[0] + gammas[0].mean)
-        else:
-            g = g_theta[0]
-            var = variance_trace(g)
-            var_rp, var_lr = (var, nan) if est.pathwise else (nan, var)
-            new_cot_x = cx[0] + gammas[0].mean if est.pathwise else cot_x
+        messages = None if cx is None else [cx[i] + gam.mean for i, gam in enumerate(gammas)]
+        out = est.combiner.combine(kinds, g_theta, messages, k_prev, previous.has_previous)
+        variance = dict(zip(kinds, out.variances))
+        new_cot_x = cot_x if out.message is None else out.message
 
-        finite = jnp.all(jnp.isfinite(g))
-        diag = StepDiagnostics(k, k_batch, var_rp, var_lr, jnp.mean(G), objective, ~finite)
-        return (G, new_cot_x, contrib + g), diag
+        finite = jnp.all(jnp.isfinite(out.gradient))
+        diag = StepDiagnostics(
+            out.k, out.k_batch, variance.get(PATHWISE, nan), variance.get(LIKELIHOOD_RATIO, nan),
+            jnp.mean(G), terms.objective, ~finite,
+        )
+        return (G, new_cot_x, contrib + out.gradient), diag
 
     xs = (
         record.x,
