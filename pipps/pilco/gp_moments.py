@@ -19,6 +19,8 @@ pairs a ≤ b are computed (static index arrays; einsum over pairs and data poin
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -50,8 +52,32 @@ def _mean_and_cross(inputs, beta, lengthscale, signal_var, mean, cov):
     return M, C, nu_s
 
 
-def _pair_second_moments(inputs, beta, lengthscale, signal_var, mean, cov, nu_s, inv):
-    """E[f_a f_b] − δ_ab-term for the pairs a ≤ b, and tr[inv_a Q^{aa}] if ``inv`` is given."""
+def pair_weights(beta: jax.Array, inv: jax.Array) -> jax.Array:
+    """``W^{ab} = β_a β_bᵀ − δ_ab inv_a`` for the pairs a ≤ b (``np.triu_indices`` order): (pairs, n, n).
+
+    ``Σ_ij W^{ab}_ij Q^{ab}_ij = E[f_a f_b] − δ_ab σ_{f,a}²`` in one pass over each ``Q^{ab}``. W
+    depends on the model only, so a propagation computes it once, not at every step (see
+    :class:`WeightedGP`)."""
+    ia, ib = np.triu_indices(beta.shape[0])
+    w = beta[ia][:, :, None] * beta[ib][:, None, :]
+    return w.at[np.nonzero(ia == ib)[0]].add(-inv)
+
+
+class WeightedGP(NamedTuple):
+    """A GP posterior with its :func:`pair_weights`, for propagations that keep the model uncertainty
+    (:func:`pipps.pilco.propagate.objective` builds it once per call; 10 × n² numbers for E = 4)."""
+
+    post: GPPosterior
+    weights: jax.Array
+
+
+def weighted(post: GPPosterior) -> WeightedGP:
+    return WeightedGP(post, pair_weights(post.beta, post.inv))
+
+
+def _pair_second_moments(inputs, beta, lengthscale, signal_var, mean, cov, nu_s, inv, weights=None):
+    """E[f_a f_b] − δ_ab-term for the pairs a ≤ b, and tr[inv_a Q^{aa}] if ``inv`` is given; with
+    ``weights`` (:func:`pair_weights`) the trace is inside the first result and the second is None."""
     n_out, dim = lengthscale.shape
     ia, ib = np.triu_indices(n_out)
     eye = jnp.eye(dim, dtype=mean.dtype)
@@ -75,6 +101,8 @@ def _pair_second_moments(inputs, beta, lengthscale, signal_var, mean, cov, nu_s,
         - 0.5 * _chol_logdet(chol)[:, None, None]
     )
     Q = jnp.exp(log_Q)  # (P, n, n)
+    if weights is not None:
+        return jnp.einsum("pij,pij->p", weights, Q), None, ia, ib
     second = jnp.einsum("pi,pij,pj->p", beta[ia], Q, beta[ib])
     trace = None
     if inv is not None:
@@ -93,6 +121,7 @@ def se_moments(
     *,
     inv: jax.Array | None = None,
     second_moment_jitter: float = 0.0,
+    weights: jax.Array | None = None,
 ) -> GaussianMap:
     """Moments of ``f(z) = [Σ_i β_{a,i} k_a(z, z_i)]_a`` at ``z ~ N(mean, cov)`` (tasks.md §5.4).
 
@@ -107,28 +136,42 @@ def se_moments(
         (a static choice: nothing of it is traced).
       second_moment_jitter: added to the diagonal of ``E[f fᵀ]`` before centring (§5.2: 1e-6
         for the RBF controller).
+      weights: :func:`pair_weights` of ``(beta, inv)``, precomputed: the same moments (to rounding)
+        with the β and trace terms in one pass over each Q; needs ``inv``.
 
     Returns:
       ``GaussianMap(M (E,), S (E, E), C (D, E))``.
     """
     M, C, nu_s = _mean_and_cross(inputs, beta, lengthscale, signal_var, mean, cov)
-    second, trace, ia, ib = _pair_second_moments(inputs, beta, lengthscale, signal_var, mean, cov, nu_s, inv)
+    if weights is not None and inv is None:
+        raise ValueError("weights carry the model-uncertainty term: pass inv with them")
+    second, trace, ia, ib = _pair_second_moments(inputs, beta, lengthscale, signal_var, mean, cov, nu_s, inv,
+                                                 weights)
     n_out = M.shape[0]
     ff = jnp.zeros((n_out, n_out), dtype=M.dtype).at[ia, ib].set(second).at[ib, ia].set(second)
     diag = jnp.full((n_out,), second_moment_jitter, dtype=M.dtype)
-    if trace is not None:
+    if weights is not None:
+        diag = diag + signal_var
+    elif trace is not None:
         diag = diag + signal_var - trace
     S = ff + jnp.diag(diag) - jnp.outer(M, M)
     return GaussianMap(M, 0.5 * (S + S.T), C)
 
 
-def gp_moments(post: GPPosterior, mean: jax.Array, cov: jax.Array, *, model_uncertainty: bool = True) -> GaussianMap:
+def gp_moments(post: GPPosterior | WeightedGP, mean: jax.Array, cov: jax.Array, *,
+               model_uncertainty: bool = True) -> GaussianMap:
     """§5.4: the latent GP ``Δ = f(z)`` at ``z ~ N(mean, cov)``, full or FITC posterior alike.
 
     ``model_uncertainty`` (static) keeps the ``E_z[var_f f_a(z)]`` term of ``S``; False drops it
     and its O(E n²) trace. No noise variance σ_n² is added (the latent function is predicted).
-    Padded rows (β = 0, zero rows/columns of ``inv``) contribute exactly nothing.
+    Padded rows (β = 0, zero rows/columns of ``inv``) contribute exactly nothing. With
+    ``model_uncertainty`` the β and trace terms are one pass over each Q (:func:`pair_weights`,
+    precomputed in a :class:`WeightedGP`, else formed here).
     """
+    if isinstance(post, WeightedGP):
+        post, weights = post.post, post.weights
+    elif model_uncertainty:
+        weights = pair_weights(post.beta, post.inv)
     hyper = post.hyper
     return se_moments(
         post.inputs,
@@ -138,4 +181,5 @@ def gp_moments(post: GPPosterior, mean: jax.Array, cov: jax.Array, *, model_unce
         mean,
         cov,
         inv=post.inv if model_uncertainty else None,
+        weights=weights if model_uncertainty else None,
     )
