@@ -239,6 +239,9 @@ def build_parser() -> argparse.ArgumentParser:
     bn.add_argument("--reference-repeats", type=_int_at_least(2), default=None,
                     help="estimates averaged into the reference gradient (default 50)")
     bn.add_argument("--reference", default="tp", help="the unbiased estimator of the reference (at the largest P)")
+    bn.add_argument("--variance-tols", default="0", help="comma-separated GP variance tolerances: 0 is the exact "
+                    "variance, T > 0 the certified low-rank form at T·σ² (docs/gp.md); each adds a series, with each "
+                    "estimate's change from the exact-variance one (default 0)")
     bn.add_argument("--direction", default="pilco", choices=["pilco", "random"])
     bn.add_argument("--seed", type=_nonnegative_int, default=0)
     bn.add_argument("--out", default="bench.h5", help="HDF5 output")
@@ -651,6 +654,13 @@ def _cmd_study(args) -> int:
     return 0
 
 
+def _float_list(option: str, text: str) -> list[float]:
+    try:
+        return [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"{option}: expected comma-separated numbers, got {text!r}") from None
+
+
 def _cmd_bench(args) -> int:
     from pathlib import Path
 
@@ -670,6 +680,7 @@ def _cmd_bench(args) -> int:
             particles=[int(x) for x in value("particles").split(",")], estimators=value("estimators").split(","),
             repeats=value("repeats"), reference=args.reference, reference_repeats=value("reference_repeats"),
             time_repeats=2 if args.quick else 5, direction="random" if args.quick else args.direction, seed=args.seed,
+            variance_tols=_float_list("--variance-tols", args.variance_tols),
             progress=lambda msg: print(f"  {msg}", file=sys.stderr))
     except (ValueError, FileNotFoundError, ResultError) as err:
         print(f"pipps bench: error: {err}", file=sys.stderr)

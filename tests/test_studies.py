@@ -173,6 +173,29 @@ def test_bench_mse_is_measured_against_the_reference(snap):
     assert e.seconds > 0 and r.mm_seconds > 0
 
 
+def test_bench_variance_tolerance_axis(snap, tmp_path):
+    """Each tolerance adds a series on the low-rank model; its estimates are paired with the exact
+    variance's (same keys): at a tolerance far below rounding they equal them to rounding, at a loose
+    one they move, by far less than their own Monte Carlo spread; the file keeps ranks and bounds."""
+    from pipps.studies.bench import bench, bench_table, read_bench, write_bench
+
+    r = bench(snap, deltas=[0.0], particles=[30], estimators=["tp"], repeats=4, reference_repeats=2, time_repeats=1,
+              direction="random", variance_tols=[1e-300, 1e-1])
+    es = {e.variance_tol: e for e in r.entries[0]}
+    assert sorted(es) == [0.0, 1e-300, 1e-1]
+    exact, tight, loose = es[0.0], es[1e-300], es[1e-1]
+    assert exact.exact_change == 0.0 and exact.exact_spread > 0
+    # full rank is the exact variance computed in another order (to ~1e-9 σ_f², test_lowrank.py); the
+    # rollout's 30 steps and the LR weights amplify that rounding, but far less than a 1e-1 truncation
+    assert tight.exact_change <= 1e-4 * tight.exact_spread, (tight.exact_change, tight.exact_spread)
+    assert 10 * tight.exact_change < loose.exact_change < 0.1 * loose.exact_spread, (loose.exact_change, loose.exact_spread)
+    assert np.all(r.variance_bounds[1e-1] <= 1e-1) and np.all(r.variance_ranks[1e-1] < snap.num_points)
+    assert "variance tol 0.1" in bench_table(r)
+    back = read_bench(write_bench(tmp_path / "b.h5", r))
+    assert [(e.series, e.exact_change) for e in back.entries[0]] == [(e.series, e.exact_change) for e in r.entries[0]]
+    np.testing.assert_array_equal(back.variance_ranks[1e-1], r.variance_ranks[1e-1])
+
+
 @pytest.mark.slow  # end to end through the CLI; the library path runs by default (test above)
 def test_cli_bench_quick(tmp_path, capsys):
     out = tmp_path / "b.h5"

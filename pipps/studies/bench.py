@@ -43,6 +43,19 @@ class BenchEntry:
     mse: float  # mean_r ‖ĝ_r − g_ref‖²
     mse_se: float  # its standard error over the repeats
     nonfinite: int  # repeats with a non-finite gradient (excluded)
+    variance_tol: float = 0.0  # 0: the exact GP variance; > 0: the certified low-rank form (pipps.gp.lowrank)
+    exact_change: float = 0.0  # with variance_tol > 0: max_r ‖ĝ_r − ĝ_r(exact variance)‖, same random numbers
+    exact_spread: float = 0.0  # the exact-variance estimates' Monte Carlo spread, sqrt(tr Cov) over the repeats
+
+    @property
+    def series(self) -> str:
+        """The estimator's name, with the tolerance for a low-rank variance (one line per series in a figure)."""
+        return self.estimator if self.variance_tol == 0 else f"{self.estimator} (variance tol {self.variance_tol:g})"
+
+    @property
+    def label(self) -> str:
+        name = LABELS.get(self.estimator, self.estimator)
+        return name if self.variance_tol == 0 else f"{name}, variance tol {self.variance_tol:g}"
 
 
 @dataclasses.dataclass
@@ -62,6 +75,8 @@ class BenchResult:
     repeats: int
     seed: int
     seconds: float
+    variance_bounds: dict = dataclasses.field(default_factory=dict)  # tol → (E,) certified bound (units of σ²)
+    variance_ranks: dict = dataclasses.field(default_factory=dict)  # tol → (E,) kept directions
 
 
 def _time(fn, arg, *, repeats: int) -> float:
@@ -110,9 +125,13 @@ def bench(
     reference_repeats: int = 50,
     direction: str = "pilco",
     seed: int = 0,
+    variance_tols=(0.0,),
     progress: Callable[[str], None] | None = None,
 ) -> BenchResult:
-    """Time and error of every (estimator, P) at every Δ (module doc)."""
+    """Time and error of every (estimator, P) at every Δ (module doc), for each GP variance in
+    ``variance_tols`` (0: exact; > 0: the certified low-rank form at that tolerance, whose entries
+    also report the change of each estimate from the exact-variance one with the same random
+    numbers). The reference gradient is always computed on the exact variance."""
     names = _check_estimators(estimators)
     _check_estimators([reference])
     particles = sorted(int(p) for p in particles)
@@ -123,6 +142,16 @@ def bench(
             raise ValueError(f"{name} must be >= 2, got {v}")
     if int(time_repeats) < 1:
         raise ValueError(f"time_repeats must be >= 1, got {time_repeats}")
+    tols = sorted({float(t) for t in variance_tols} | {0.0})
+    if tols[0] < 0 or not all(np.isfinite(tols)):
+        raise ValueError(f"variance_tols must be finite numbers >= 0, got {list(variance_tols)}")
+    variants, bounds, ranks = {0.0: snap}, {}, {}
+    for tol in tols[1:]:
+        from pipps.gp.lowrank import low_rank_model
+
+        model, kept = low_rank_model(snap.model, snap.data, tol, sparse=snap.sparse, jitter=snap.jitter)
+        variants[tol] = dataclasses.replace(snap, model=model, programs={})
+        bounds[tol], ranks[tol] = np.asarray(model.bound), np.asarray(kept)
     progress = progress or (lambda msg: None)
     start = time.perf_counter()
     deltas = np.asarray(deltas, float)
@@ -144,19 +173,27 @@ def bench(
     entries: list[list[BenchEntry]] = [[] for _ in deltas]
     for ei, name in enumerate(names):
         for P in particles:
-            prog = _estimator_program(snap, name, P, "library")
-            seconds = _time(_timing_program(snap, name, P), points[0], repeats=time_repeats)
-            for di, p in enumerate(points):
-                key = jax.random.fold_in(jax.random.PRNGKey(seed + 13), 10_000 * ei + 10 * P + di)
-                g = _estimates(prog, key, p, repeats)
-                finite = np.all(np.isfinite(g), axis=1)
-                sq = np.sum((g[finite] - refs[di]) ** 2, axis=1)
-                se = float(sq.std(ddof=1) / np.sqrt(len(sq))) if len(sq) > 1 else float("nan")
-                entries[di].append(BenchEntry(name, P, seconds, float(sq.mean()) if len(sq) else float("nan"), se,
-                                              int((~finite).sum())))
-                progress(f"{LABELS.get(name, name)} P={P} Δ={deltas[di]:.3g}: {seconds:.3g} s, MSE {entries[di][-1].mse:.3g}")
+            exact_g = {}
+            for tol, variant in variants.items():
+                prog = _estimator_program(variant, name, P, "library")
+                seconds = _time(_timing_program(variant, name, P), points[0], repeats=time_repeats)
+                for di, p in enumerate(points):
+                    key = jax.random.fold_in(jax.random.PRNGKey(seed + 13), 10_000 * ei + 10 * P + di)
+                    g = _estimates(prog, key, p, repeats)  # the same keys for every tolerance: paired
+                    finite = np.all(np.isfinite(g), axis=1)
+                    sq = np.sum((g[finite] - refs[di]) ** 2, axis=1)
+                    se = float(sq.std(ddof=1) / np.sqrt(len(sq))) if len(sq) > 1 else float("nan")
+                    if tol == 0.0:
+                        exact_g[di] = g
+                    both = finite & np.all(np.isfinite(exact_g[di]), axis=1)
+                    change = float(np.max(np.linalg.norm(g[both] - exact_g[di][both], axis=1))) if both.any() else float("nan")
+                    spread = float(np.sqrt(np.sum(np.var(exact_g[di][both], axis=0, ddof=1)))) if both.sum() > 1 else float("nan")
+                    entry = BenchEntry(name, P, seconds, float(sq.mean()) if len(sq) else float("nan"), se,
+                                       int((~finite).sum()), tol, change, spread)
+                    entries[di].append(entry)
+                    progress(f"{entry.label} P={P} Δ={deltas[di]:.3g}: {seconds:.3g} s, MSE {entry.mse:.3g}")
     return BenchResult(snap.source, snap.trial, deltas, d, direction, np.stack(refs), np.array(ref_err), reference,
-                       P_ref, entries, mm_seconds, mm_dist, repeats, seed, time.perf_counter() - start)
+                       P_ref, entries, mm_seconds, mm_dist, repeats, seed, time.perf_counter() - start, bounds, ranks)
 
 
 def pareto(entries: list[BenchEntry]) -> list[BenchEntry]:
@@ -176,11 +213,16 @@ def bench_table(r: BenchResult) -> str:
         front = pareto(es)
         lines += ["", f"Δ = {delta:.3g} (reference error tr Cov[g_ref] = {r.reference_error[di]:.3g}; "
                       f"‖g_ref‖² = {float(np.sum(r.reference[di] ** 2)):.3g})", "",
-                  "| estimator | P | s per value-and-gradient | MSE to g_ref | ± SE | Pareto |", "|---|---|---|---|---|---|"]
-        for e in sorted(es, key=lambda e: (e.estimator, e.particles)):
+                  "| estimator | P | s per value-and-gradient | MSE to g_ref | ± SE | Pareto |"
+                  + (" max ‖ĝ − ĝ_exact‖ / MC spread |" if r.variance_bounds else ""),
+                  "|---|---|---|---|---|---|" + ("---|" if r.variance_bounds else "")]
+        for e in sorted(es, key=lambda e: (e.estimator, e.particles, e.variance_tol)):
             bad = f" ({e.nonfinite} non-finite)" if e.nonfinite else ""
-            lines.append(f"| {LABELS.get(e.estimator, e.estimator)} | {e.particles} | {e.seconds:.4f} | {e.mse:.3g}{bad} "
-                         f"| {e.mse_se:.2g} | {'yes' if e in front else ''} |")
+            change = ""
+            if r.variance_bounds:
+                change = f" {e.exact_change:.3g} / {e.exact_spread:.3g} |" if e.variance_tol > 0 else " – |"
+            lines.append(f"| {e.label} | {e.particles} | {e.seconds:.4f} | {e.mse:.3g}{bad} "
+                         f"| {e.mse_se:.2g} | {'yes' if e in front else ''} |{change}")
         lines.append(f"| PILCO (exact MM gradient) | – | {r.mm_seconds:.4f} | {r.mm_distance[di]:.3g} (‖∇J_MM − g_ref‖²) | – | |")
         finite = [e for e in es if np.isfinite(e.mse)]
         if finite:
@@ -192,7 +234,10 @@ def bench_table(r: BenchResult) -> str:
                 ok = [e for e in finite if e.mse <= t]
                 if ok:
                     best = min(ok, key=lambda e: e.seconds)
-                    lines.append(f"| {t:.0e} | {LABELS.get(best.estimator, best.estimator)}, P = {best.particles} | {best.seconds:.4f} |")
+                    lines.append(f"| {t:.0e} | {best.label}, P = {best.particles} | {best.seconds:.4f} |")
+    for tol in sorted(r.variance_bounds):
+        lines.append(f"\nvariance tol {tol:g}: ranks {np.asarray(r.variance_ranks[tol]).tolist()}, certified bounds "
+                     f"{np.array2string(np.asarray(r.variance_bounds[tol]), precision=2)} (units of σ²)")
     return "\n".join(lines)
 
 
@@ -220,8 +265,14 @@ def write_bench(path: str | Path, r: BenchResult) -> Path:
         for di, es in enumerate(r.entries):
             g = f.create_group(f"entries/delta_{di:03d}")
             g.create_dataset("estimator", data=np.array([e.estimator for e in es], dtype="S"))
-            for col in ("particles", "seconds", "mse", "mse_se", "nonfinite"):
+            for col in ("particles", "seconds", "mse", "mse_se", "nonfinite", "variance_tol", "exact_change",
+                        "exact_spread"):
                 g.create_dataset(col, data=np.array([getattr(e, col) for e in es]))
+        for tol in sorted(r.variance_bounds):
+            g = f.create_group(f"variance/tol_{tol:g}")
+            g.attrs["tol"] = tol
+            g.create_dataset("bound", data=np.asarray(r.variance_bounds[tol]))
+            g.create_dataset("ranks", data=np.asarray(r.variance_ranks[tol]))
     with open(tmp, "rb+") as fh:
         os.fsync(fh.fileno())
     os.replace(tmp, path)
@@ -237,11 +288,18 @@ def read_bench(path: str | Path) -> BenchResult:
         entries = []
         for key in sorted(f["entries"]):
             g = f["entries"][key]
+            n = len(g["estimator"])
             cols = {c: g[c][()] for c in ("particles", "seconds", "mse", "mse_se", "nonfinite")}
+            for c in ("variance_tol", "exact_change", "exact_spread"):  # benches written before the tolerance axis lack them
+                cols[c] = g[c][()] if c in g else np.zeros(n)
             entries.append([BenchEntry(e.decode(), int(cols["particles"][i]), float(cols["seconds"][i]), float(cols["mse"][i]),
-                                       float(cols["mse_se"][i]), int(cols["nonfinite"][i]))
+                                       float(cols["mse_se"][i]), int(cols["nonfinite"][i]), float(cols["variance_tol"][i]),
+                                       float(cols["exact_change"][i]), float(cols["exact_spread"][i]))
                             for i, e in enumerate(g["estimator"][()])])
+        bounds, ranks = {}, {}
+        for g in (f["variance"].values() if "variance" in f else []):
+            bounds[float(g.attrs["tol"])], ranks[float(g.attrs["tol"])] = g["bound"][()], g["ranks"][()]
         return BenchResult(str(a["source"]), int(a["trial"]), f["deltas"][()], f["direction"][()], str(a["direction_kind"]),
                            f["reference"][()], f["reference_error"][()], str(a["reference_estimator"]),
                            int(a["reference_particles"]), entries, float(a["mm_seconds"]), f["mm_distance"][()],
-                           int(a["repeats"]), int(a["seed"]), float(a["seconds"]))
+                           int(a["repeats"]), int(a["seed"]), float(a["seconds"]), bounds, ranks)

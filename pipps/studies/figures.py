@@ -28,11 +28,13 @@ PANEL = (560.0, 400.0)
 
 
 def _color(name: str):
-    return COLORS.get(name, (100, 100, 100))
+    """An estimator's colour; a series ``"tp (variance tol 0.01)"`` takes its estimator's."""
+    return COLORS.get(name.split(" (")[0], (100, 100, 100))
 
 
 def _label(name: str) -> str:
-    return LABELS.get(name, name)
+    base, _, rest = name.partition(" (")
+    return LABELS.get(base, base) + (f" ({rest}" if rest else "")
 
 
 def _sci(v: float) -> str:
@@ -176,12 +178,12 @@ def record_variance(r: VarianceResult, out: str | Path) -> Path:
 
 def bench_figure(r) -> tuple[ch.Figure, list[dict[str, np.ndarray]]]:
     """One log-log panel per Δ: MSE to the reference against seconds per estimate; per Δ, the estimators off scale."""
-    names = list(dict.fromkeys(e.estimator for es in r.entries for e in es))
+    names = list(dict.fromkeys(e.series for es in r.entries for e in es))
     seconds = [e.seconds for es in r.entries for e in es] + [r.mm_seconds]
     sx = ch.Axis("seconds per value-and-gradient (median)", *ch.data_range([seconds], log=True), log=True)
     charts, hidden = [], []
     for di, delta in enumerate(r.deltas):
-        mse = {n: np.array([e.mse for e in r.entries[di] if e.estimator == n]) for n in names}
+        mse = {n: np.array([e.mse for e in r.entries[di] if e.series == n]) for n in names}
         off = off_scale({n: float(np.nanmax(v)) if np.any(np.isfinite(v)) else np.nan for n, v in mse.items()}, 1e3)
         hidden.append({n: mse[n] for n in off})
         rng = ch.data_range([v for n, v in mse.items() if n not in off], log=True,
@@ -204,15 +206,15 @@ def _marker_sizes(r) -> dict[int, float]:
 def record_bench(r, out: str | Path) -> Path:
     """Recording of :func:`bench_figure`: per estimator a line through its P values, each point labelled with P."""
     fig, hidden = bench_figure(r)
-    names = list(dict.fromkeys(e.estimator for es in r.entries for e in es))
+    names = list(dict.fromkeys(e.series for es in r.entries for e in es))
     sizes = _marker_sizes(r)
     with ch.recording(out, "pipps-bench", ch.blueprint(fig)) as rec:
         ch.draw(rec, fig)
         for di, c in enumerate(fig.charts):
             for n in names:
-                es = sorted((e for e in r.entries[di] if e.estimator == n), key=lambda e: e.particles)
+                es = sorted((e for e in r.entries[di] if e.series == n), key=lambda e: e.particles)
                 x, y = [e.seconds for e in es], [e.mse for e in es]
-                ch.line(rec, c, n, x, y, _color(n))
+                ch.line(rec, c, n, x, y, _color(n), dash=" (" in n)  # dashed: a low-rank variance
                 for e in es:
                     ch.points(rec, c, f"{n}_points/P_{e.particles}", [e.seconds], [e.mse], _color(n), size=sizes[e.particles])
             ch.markers(rec, c, "pilco_mm", [r.mm_seconds], [r.mm_distance[di]], MM_COLOR)
