@@ -161,13 +161,17 @@ def test_a_legacy_quick_file_is_recognised_as_quick():
     assert from_dict(custom).protocol == "thesis" and departures(from_dict(custom)) == {"policy_evals": (11, 600)}
 
 
-def test_committed_results_read_keep_their_names_and_retabulate(capsys):
+def test_committed_results_read_keep_their_names_and_retabulate(capsys, tmp_path):
     files = sorted((REPO / "results/thesis").glob("*.h5"))
     assert files
     for p in files:
         cfg = read_summary(p)["config"]
         assert f"{experiment_name(cfg)}.h5" == p.name and cfg.protocol == "thesis" and not departures(cfg)
-    code, out = cli("table", REPO / "results/thesis", "--table", "4.1", capsys=capsys)
+    # the k = 1 cell's first five seeds per method (the folder grows as sweeps add seeds)
+    for p in files:
+        if p.name.startswith("cartpole_swingup_angle_k1_") and p.stem[-2:] in ("s0", "s1", "s2", "s3", "s4"):
+            (tmp_path / p.name).symlink_to(p)
+    code, out = cli("table", tmp_path, "--table", "4.1", capsys=capsys)
     # the same numbers by the thesis' return threshold (5/5 each), and the physical verdict beside them
     # (docs/results.md: TP seed 4 and PILCO seed 4 swing up but do not stay balanced)
     assert code == 0 and ("| k = 1 | 0.80 [0.38, 0.96] (5) / 0.79 · return 1.00 | 0.80 [0.38, 0.96] (5) / 0.99 ! · "
