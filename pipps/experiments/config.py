@@ -29,25 +29,10 @@ import math
 import typing
 from typing import Any
 
+from pipps.experiments.methods import METHODS, Method
+
 PRESET_NAMES = ("thesis", "pilco", "quick")
 TASKS = ("cartpole_swingup", "cartpole_balance", "unicycle")
-
-#: Methods, with the thesis' table name. Each maps to an optimizer kind and an estimator.
-METHODS: dict[str, str] = {
-    "pilco": "PILCO",
-    "rp": "RP",
-    "rp_fs": "RP_FS",
-    "gr": "GR",
-    "gr_fs": "GR_FS",
-    "lr": "LR",
-    "tp": "TP",
-    "tp-sf": "TP−σ_f",
-    "tp+sn": "TP+σ_n",
-    "gtp": "GTP",
-    "glr": "GLR",
-    "gtp+sn": "GTP+σ_n",
-    "del": "DEL",
-}
 
 #: The quick preset's RBF centre box over [x_c, v, ω, θ] (experiments.md "quick").
 QUICK_CENTRE_LOW = (-1.0, -3.0, -8.0, -math.pi / 2)
@@ -127,16 +112,21 @@ class ExperimentConfig:
         return self.num_random + self.num_learned
 
     @property
+    def method_spec(self) -> Method:
+        """The method's record in the registry (:mod:`pipps.experiments.methods`)."""
+        return METHODS[self.method]
+
+    @property
     def is_pilco(self) -> bool:
-        return self.method == "pilco"
+        return self.method_spec.moment_matching
 
     @property
     def fixed_seed(self) -> bool:
-        return self.method.endswith("_fs")
+        return self.method_spec.fixed_seed
 
     @property
     def table_name(self) -> str:
-        return METHODS[self.method]
+        return self.method_spec.label
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

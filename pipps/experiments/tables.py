@@ -14,7 +14,8 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from pipps.experiments.config import METHODS, ExperimentConfig, resolve_config
+from pipps.experiments.config import ExperimentConfig, resolve_config
+from pipps.experiments.methods import METHODS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -369,7 +370,8 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
         return f"**{table.title}**: no complete results for this table."
     a, b = compare
     paired = a in methods and b in methods
-    head = [METHODS[m] for m in methods] + ([f"{METHODS[a]} − {METHODS[b]} [95 %], Fisher p"] if paired else [])
+    labels = {m: METHODS[m].label for m in methods}
+    head = list(labels.values()) + ([f"{labels[a]} − {labels[b]} [95 %], Fisher p"] if paired else [])
     lines = [f"**{table.title}** — ours: success rate by the physical criterion [95 % Wilson interval] (seeds) / "
              "thesis (`!`: the thesis value lies outside our interval); `· return r`: the rate by the thesis' "
              "return threshold", "", "| | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
@@ -402,7 +404,7 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
             lines.append(f"| {row} | " + " | ".join(cells) + " |")
     notes = []
     for r in results:
-        name = f"{r.cell.row}, {METHODS[r.cell.method]}"
+        name = f"{r.cell.row}, {METHODS[r.cell.method].label}"
         if r.mixed:
             notes.append(f"Warning: {name} pools results whose settings differ in {', '.join(r.mixed)}; read them "
                          "from separate folders.")
@@ -434,6 +436,6 @@ def render_curves(summaries: list[dict[str, Any]]) -> str:
         frac = s.get("final_balanced")
         frac = "" if frac is None else f"{frac:.2f}"
         se = s.get("final_se", math.nan)
-        lines.append(f"| {c.task} {METHODS[c.method]} k={c.k:g} seed {c.seed} | {'yes' if s['success'] else 'no'}{ret} | "
+        lines.append(f"| {c.task} {METHODS[c.method].label} k={c.k:g} seed {c.seed} | {'yes' if s['success'] else 'no'}{ret} | "
                      + " | ".join(vals) + f" | {s['eval_return'][-1]:.1f} ± {se:.1f} | {frac} | {s['wall_seconds'] / 60:.0f} |")
     return "\n".join(lines)
