@@ -306,9 +306,25 @@ def resolve_overrides(base: ExperimentConfig | dict, overrides: dict[str, Any]) 
 def resolve_config(preset: str = "thesis", task: str = "cartpole_swingup", **overrides) -> ExperimentConfig:
     """The configuration of ``preset`` for ``task`` with ``overrides`` (validated).
 
+    An override of a setting the method does not use is refused by name (:func:`refuse_unused`);
+    the preset's own values of such settings stay, since they cannot change the experiment.
+
     Example: ``resolve_config("thesis", "cartpole_swingup", method="pilco", k=4, seed=3)``.
     """
-    return resolve_overrides(preset_values(preset, task), overrides)
+    cfg = resolve_overrides(preset_values(preset, task), overrides)
+    refuse_unused(cfg.method, overrides)
+    return cfg
+
+
+def refuse_unused(method: str, names) -> None:
+    """Raise :class:`ConfigError` naming the first of the settings ``names`` that ``method`` does
+    not use (:attr:`pipps.experiments.methods.Method.unused`)."""
+    spec = METHODS[method]
+    for name in names:
+        key = name.replace("-", "_")
+        if key in spec.unused:
+            raise ConfigError(f"{key}: {method} does not use it (its method-specific settings: "
+                              f"{', '.join(spec.settings) or 'none'})")
 
 
 def from_dict(d: dict[str, Any]) -> ExperimentConfig:
@@ -375,11 +391,20 @@ COMPUTATIONAL = ("gp_chunk", "progress_chunk")
 
 def canonical(cfg: ExperimentConfig) -> dict[str, Any]:
     """The configuration as a dict with the default cost named (``cost=None`` and ``cost="angle"``
-    are the same experiment on the cart-pole's thesis preset) and without the
-    :data:`COMPUTATIONAL` settings."""
+    are the same experiment on the cart-pole's thesis preset), without the :data:`COMPUTATIONAL`
+    settings, and with every setting the method does not use
+    (:attr:`pipps.experiments.methods.Method.unused`) at the value its experiment preset gives.
+
+    A setting the method does not use cannot change the experiment, so configurations that differ
+    only there are one experiment: one name, one hash, and resume and pooling accept them. It
+    reads as if it had not been given, rather than being dropped, so that every configuration
+    that leaves it alone keeps the ``config_hash`` and file name it had before the methods
+    declared the settings they use."""
     from pipps.tasks.presets import DEFAULT_COST
 
     d = cfg.to_dict()
+    preset = protocol_config(cfg).to_dict()
+    d.update({name: preset[name] for name in cfg.method_spec.unused})
     if d["cost"] is None:
         d["cost"] = DEFAULT_COST[(cfg.task, cfg.preset)]
     for name, hint in _field_types().items():  # k=1 and k=1.0 are one experiment (and one hash)

@@ -28,6 +28,12 @@ del        DEL         density-estimation LR (§6)
 With ``estimator_choices="thesis"`` the LR parts use the thesis' eq. 4.3 baseline and TP its
 same-batch ``k_LR`` (biased, docs/estimator-bias.md); ``"library"`` uses the unbiased defaults.
 A method whose estimator is the same either way (RP, DEL) does not use ``estimator_choices``.
+
+**A setting a method does not use** cannot change its experiment. It is left out of the
+experiment's identity (:func:`pipps.experiments.config.canonical`: the file name, ``config_hash``,
+resume and pooling checks), and an explicit override of it is refused by name
+(:func:`pipps.experiments.config.resolve_config`; a sweep applies each ``--set`` to the methods
+that use it).
 """
 
 from __future__ import annotations
