@@ -18,6 +18,21 @@ Presets:
 * ``quick`` — the thesis protocol shrunk for a few-minute CPU run: fewer trials, particles
   and policy evaluations, and the documented departure of experiments.md: RBF centres spread
   uniformly over the state box and wider initial length-scales.
+
+**Two presets.** The word names two things, kept apart here and only here:
+
+* the *experiment preset* above, which ``--preset`` chooses (:data:`PRESET_NAMES`), is stored
+  in the field ``protocol``: every setting of the experiment, from trials to step sizes;
+* the *task preset* (:data:`pipps.tasks.presets.PRESETS`: ``thesis``, ``pilco``) is the task's
+  physics, noise, cost and horizon, and is stored in the field ``preset``. The experiment preset
+  sets it: ``thesis`` and ``quick`` run the thesis task, ``pilco`` PILCO's.
+
+The field ``preset`` keeps its name because result files store it under that name and
+``config_hash`` (part of a custom experiment's file name) is computed over the field names:
+renaming it would change the hash of every experiment. ``pipps run --set preset=…`` is refused
+(``--preset`` is the experiment preset).
+
+Methods and the settings each uses are the registry :mod:`pipps.experiments.methods`.
 """
 
 from __future__ import annotations
@@ -53,8 +68,8 @@ class ExperimentConfig:
 
     # what is learned
     task: str = "cartpole_swingup"
-    preset: str = "thesis"  # the task preset: physics, noise, cost (``thesis``/``pilco``; ``quick`` uses the thesis task)
-    protocol: str = "thesis"  # the experiment preset it was built from (``thesis``/``pilco``/``quick``; module doc)
+    preset: str = "thesis"  # the *task* preset: physics, noise, cost (module doc, "Two presets")
+    protocol: str = "thesis"  # the *experiment* preset it was built from, ``--preset`` (module doc)
     cost: str | None = None  # angle | tip | unicycle; None: the task preset's default
     cost_scale: float = 1.0  # Q multiplier of the Angle Cost (the thesis' "Q × 0.01" cell)
     k: float = 1.0  # observation-noise variance multiplier
