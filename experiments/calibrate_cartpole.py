@@ -27,7 +27,7 @@ from collections import defaultdict
 import numpy as np
 
 from pipps.experiments.calibration import fit_return_threshold
-from pipps.experiments.config import METHODS
+from pipps.experiments.methods import METHODS
 from pipps.experiments.criteria import Resimulator
 from pipps.experiments.results import read_result
 
@@ -87,7 +87,7 @@ def main(argv=None) -> None:
             print("| method | seed | trial | mean return | balanced fraction | physical | return < 15 |")
             print("|---|---|---|---|---|---|---|")
             for r, ok in sorted(bad, key=lambda x: (x[0][1], x[0][2], x[0][3])):
-                print(f"| {METHODS[r[1]]} | {r[2]} | {r[3]} | {r[4]:.2f} | {r[5]:.2f} | {'yes' if ok else 'no'} | "
+                print(f"| {METHODS[r[1]].label} | {r[2]} | {r[3]} | {r[4]:.2f} | {r[5]:.2f} | {'yes' if ok else 'no'} | "
                       f"{'no' if ok else 'yes'} |")
     fractions = [float(x) for x in args.fractions.split(",")]
     print("\nFinal trials: success rate by required balanced fraction (sensitivity of the criterion)")
@@ -98,7 +98,7 @@ def main(argv=None) -> None:
         cells[(r[0], r[1])].append(r)
     for (k, m), items in sorted(cells.items()):
         rates = [f"{sum(r[5] >= f for r in items)}/{len(items)}" for f in fractions]
-        print(f"| {k:g} | {METHODS[m]} | {len(items)} | " + " | ".join(rates)
+        print(f"| {k:g} | {METHODS[m].label} | {len(items)} | " + " | ".join(rates)
               + f" | {sum(r[4] < r[7] for r in items)}/{len(items)} |")
     bounds = [tuple(float(v) for v in b.split(":")) for b in args.bounds.split(",")]
     print("\nFinal trials: success rate (>= the configured fraction balanced) by the criterion's bounds "
@@ -116,7 +116,7 @@ def main(argv=None) -> None:
                 _, _, flags = sim.trial(res, len(res.trials) - 1, balance=(res.config.balance_steps, a, p))
                 ok += float(np.mean(flags)) >= r[6]
             rates.append(f"{ok}/{len(items)}")
-        print(f"| {k:g} | {METHODS[m]} | {len(items)} | " + " | ".join(rates) + " |")
+        print(f"| {k:g} | {METHODS[m].label} | {len(items)} | " + " | ".join(rates) + " |")
     if args.fresh:
         print(f"\nFinal policies re-simulated with {args.fresh} independent rollouts each:")
         print("| k | method | seed | stored: return, balanced | fresh: return ± SE, balanced | verdict holds |")
@@ -125,7 +125,7 @@ def main(argv=None) -> None:
             ret, _, flags = sim.trial(res, len(res.trials) - 1, fresh=args.fresh)
             f_ok, s_ok = float(np.mean(flags)) >= r[6], r[5] >= r[6]
             se = float(np.std(ret, ddof=1) / np.sqrt(ret.size))
-            print(f"| {r[0]:g} | {METHODS[r[1]]} | {r[2]} | {r[4]:.2f}, {r[5]:.2f} | {np.mean(ret):.2f} ± {se:.2f}, "
+            print(f"| {r[0]:g} | {METHODS[r[1]].label} | {r[2]} | {r[4]:.2f}, {r[5]:.2f} | {np.mean(ret):.2f} ± {se:.2f}, "
                   f"{np.mean(flags):.2f} | {'yes' if f_ok == s_ok else 'NO'} |")
 
 

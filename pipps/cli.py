@@ -104,7 +104,8 @@ def _check_settings(settings: list[tuple[str, str]], own: dict[str, str], fixed_
 
 
 def _add_experiment_options(p: argparse.ArgumentParser, *, single: bool) -> None:
-    from pipps.experiments.config import METHODS, PRESET_NAMES, TASKS
+    from pipps.experiments.config import PRESET_NAMES, TASKS
+    from pipps.experiments.methods import METHODS
 
     p.add_argument("--preset", default="thesis", choices=PRESET_NAMES,
                    help="thesis (the thesis protocol), pilco (PILCO's task defaults) or quick (a few minutes on a CPU)")

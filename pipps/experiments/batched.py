@@ -62,7 +62,7 @@ from pipps.experiments.loop import (
     step_report,
     stored_trajectory,
 )
-from pipps.experiments.methods import particle_method
+from pipps.experiments.methods import MOMENTUM, particle_method
 from pipps.gp import capacity_for, fit_many, make_data, pad_to_capacity
 from pipps.gp.linalg import map_outputs, stack_trees
 from pipps.rollout import rollout, training_pairs
@@ -82,7 +82,7 @@ def check_batchable(cfgs: Sequence[ExperimentConfig]) -> None:
     seeds = [c.seed for c in cfgs]
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"batched: seeds repeat: {seeds}")
-    if base.is_pilco or base.fixed_seed:
+    if base.method_spec.optimizer != MOMENTUM:
         raise ValueError(f"batched: method {base.method!r} optimises with per-seed quasi-Newton line searches and "
                          "runs unbatched; the batched mode takes the stochastic-gradient particle methods")
     if base.variance_tol > 0:

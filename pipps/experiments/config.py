@@ -18,6 +18,21 @@ Presets:
 * ``quick`` — the thesis protocol shrunk for a few-minute CPU run: fewer trials, particles
   and policy evaluations, and the documented departure of experiments.md: RBF centres spread
   uniformly over the state box and wider initial length-scales.
+
+**Two presets.** The word names two things, kept apart here and only here:
+
+* the *experiment preset* above, which ``--preset`` chooses (:data:`PRESET_NAMES`), is stored
+  in the field ``protocol``: every setting of the experiment, from trials to step sizes;
+* the *task preset* (:data:`pipps.tasks.presets.PRESETS`: ``thesis``, ``pilco``) is the task's
+  physics, noise, cost and horizon, and is stored in the field ``preset``. The experiment preset
+  sets it: ``thesis`` and ``quick`` run the thesis task, ``pilco`` PILCO's.
+
+The field ``preset`` keeps its name because result files store it under that name and
+``config_hash`` (part of a custom experiment's file name) is computed over the field names:
+renaming it would change the hash of every experiment. ``pipps run --set preset=…`` is refused
+(``--preset`` is the experiment preset).
+
+Methods and the settings each uses are the registry :mod:`pipps.experiments.methods`.
 """
 
 from __future__ import annotations
@@ -29,25 +44,10 @@ import math
 import typing
 from typing import Any
 
+from pipps.experiments.methods import METHODS, Method
+
 PRESET_NAMES = ("thesis", "pilco", "quick")
 TASKS = ("cartpole_swingup", "cartpole_balance", "unicycle")
-
-#: Methods, with the thesis' table name. Each maps to an optimizer kind and an estimator.
-METHODS: dict[str, str] = {
-    "pilco": "PILCO",
-    "rp": "RP",
-    "rp_fs": "RP_FS",
-    "gr": "GR",
-    "gr_fs": "GR_FS",
-    "lr": "LR",
-    "tp": "TP",
-    "tp-sf": "TP−σ_f",
-    "tp+sn": "TP+σ_n",
-    "gtp": "GTP",
-    "glr": "GLR",
-    "gtp+sn": "GTP+σ_n",
-    "del": "DEL",
-}
 
 #: The quick preset's RBF centre box over [x_c, v, ω, θ] (experiments.md "quick").
 QUICK_CENTRE_LOW = (-1.0, -3.0, -8.0, -math.pi / 2)
@@ -68,8 +68,8 @@ class ExperimentConfig:
 
     # what is learned
     task: str = "cartpole_swingup"
-    preset: str = "thesis"  # the task preset: physics, noise, cost (``thesis``/``pilco``; ``quick`` uses the thesis task)
-    protocol: str = "thesis"  # the experiment preset it was built from (``thesis``/``pilco``/``quick``; module doc)
+    preset: str = "thesis"  # the *task* preset: physics, noise, cost (module doc, "Two presets")
+    protocol: str = "thesis"  # the *experiment* preset it was built from, ``--preset`` (module doc)
     cost: str | None = None  # angle | tip | unicycle; None: the task preset's default
     cost_scale: float = 1.0  # Q multiplier of the Angle Cost (the thesis' "Q × 0.01" cell)
     k: float = 1.0  # observation-noise variance multiplier
@@ -127,16 +127,21 @@ class ExperimentConfig:
         return self.num_random + self.num_learned
 
     @property
+    def method_spec(self) -> Method:
+        """The method's record in the registry (:mod:`pipps.experiments.methods`)."""
+        return METHODS[self.method]
+
+    @property
     def is_pilco(self) -> bool:
-        return self.method == "pilco"
+        return self.method_spec.moment_matching
 
     @property
     def fixed_seed(self) -> bool:
-        return self.method.endswith("_fs")
+        return self.method_spec.fixed_seed
 
     @property
     def table_name(self) -> str:
-        return METHODS[self.method]
+        return self.method_spec.label
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -316,9 +321,25 @@ def resolve_overrides(base: ExperimentConfig | dict, overrides: dict[str, Any]) 
 def resolve_config(preset: str = "thesis", task: str = "cartpole_swingup", **overrides) -> ExperimentConfig:
     """The configuration of ``preset`` for ``task`` with ``overrides`` (validated).
 
+    An override of a setting the method does not use is refused by name (:func:`refuse_unused`);
+    the preset's own values of such settings stay, since they cannot change the experiment.
+
     Example: ``resolve_config("thesis", "cartpole_swingup", method="pilco", k=4, seed=3)``.
     """
-    return resolve_overrides(preset_values(preset, task), overrides)
+    cfg = resolve_overrides(preset_values(preset, task), overrides)
+    refuse_unused(cfg.method, overrides)
+    return cfg
+
+
+def refuse_unused(method: str, names) -> None:
+    """Raise :class:`ConfigError` naming the first of the settings ``names`` that ``method`` does
+    not use (:attr:`pipps.experiments.methods.Method.unused`)."""
+    spec = METHODS[method]
+    for name in names:
+        key = name.replace("-", "_")
+        if key in spec.unused:
+            raise ConfigError(f"{key}: {method} does not use it (its method-specific settings: "
+                              f"{', '.join(spec.settings) or 'none'})")
 
 
 def from_dict(d: dict[str, Any]) -> ExperimentConfig:
@@ -385,11 +406,20 @@ COMPUTATIONAL = ("gp_chunk", "progress_chunk")
 
 def canonical(cfg: ExperimentConfig) -> dict[str, Any]:
     """The configuration as a dict with the default cost named (``cost=None`` and ``cost="angle"``
-    are the same experiment on the cart-pole's thesis preset) and without the
-    :data:`COMPUTATIONAL` settings."""
+    are the same experiment on the cart-pole's thesis preset), without the :data:`COMPUTATIONAL`
+    settings, and with every setting the method does not use
+    (:attr:`pipps.experiments.methods.Method.unused`) at the value its experiment preset gives.
+
+    A setting the method does not use cannot change the experiment, so configurations that differ
+    only there are one experiment: one name, one hash, and resume and pooling accept them. It
+    reads as if it had not been given, rather than being dropped, so that every configuration
+    that leaves it alone keeps the ``config_hash`` and file name it had before the methods
+    declared the settings they use."""
     from pipps.tasks.presets import DEFAULT_COST
 
     d = cfg.to_dict()
+    preset = protocol_config(cfg).to_dict()
+    d.update({name: preset[name] for name in cfg.method_spec.unused})
     if d["cost"] is None:
         d["cost"] = DEFAULT_COST[(cfg.task, cfg.preset)]
     for name, hint in _field_types().items():  # k=1 and k=1.0 are one experiment (and one hash)

@@ -20,15 +20,11 @@ from typing import Any
 import numpy as np
 
 from pipps import charts as ch
-from pipps.experiments.config import METHODS
+from pipps.experiments.methods import METHODS
 from pipps.experiments.loop import ExperimentResult
 from pipps.experiments.tables import Cell, CellResult, Table
 
 PANEL = (480.0, 340.0)
-METHOD_COLORS = {"pilco": (214, 39, 40), "tp": (31, 119, 180), "rp": (255, 127, 14), "rp_fs": (188, 189, 34),
-                 "gr": (148, 103, 189), "gr_fs": (140, 86, 75), "lr": (44, 160, 44), "tp-sf": (23, 190, 207),
-                 "tp+sn": (127, 127, 127), "gtp": (227, 119, 194), "glr": (80, 80, 160), "gtp+sn": (100, 100, 100),
-                 "del": (0, 0, 0)}
 #: one colour per experiment group in the diagnostics figure
 PALETTE = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189), (140, 86, 75)]
 #: which model-state component is the angle drawn in the predictions, the true state's index of it, and its label
@@ -37,7 +33,8 @@ ANGLE_INDEX = {"cartpole_swingup": (3, 3, "pole angle θ (rad)"), "cartpole_bala
 
 
 def method_color(method: str):
-    return METHOD_COLORS.get(method, (100, 100, 100))
+    """The method's colour in the registry (:mod:`pipps.experiments.methods`)."""
+    return METHODS[method].colour
 
 
 # -- table cells ------------------------------------------------------------------------------------------
@@ -58,7 +55,7 @@ def cells_figure(tables: list[tuple[Table, list[CellResult]]]) -> ch.Figure:
     width = max(c.size[0] for c in charts)
     charts = [ch.Chart(c.path, c.title, c.x, c.y, (width, c.size[1]), c.margins) for c in charts]
     methods = list(dict.fromkeys(m for t, rs in tables for m in _methods_with_results(t, rs)))
-    keys = [*[ch.Key(METHODS[m], method_color(m), "interval") for m in methods],
+    keys = [*[ch.Key(METHODS[m].label, method_color(m), "interval") for m in methods],
             ch.Key("ours: success rate, 95 % Wilson interval, successes/seeds", ch.GREY, "interval")]
     if any(r.n and r.return_successes is not None for _, rs in tables for r in rs):
         keys.append(ch.Key("ours by the thesis' return threshold", ch.GREY, "bar"))
@@ -142,7 +139,7 @@ def curves_figure(table: Table, cells: list[tuple[Cell, list[dict[str, Any]]]]) 
     for row in rows:
         for m in methods:
             c, rs = by.get((row, m), (None, []))
-            name = f"{'' if unicycle else row + ', '}{METHODS[m]}"
+            name = f"{'' if unicycle else row + ', '}{METHODS[m].label}"
             path = f"curves/{row}_{m}".replace(" ", "").replace("=", "").replace(".", "p").replace("⁻", "m")
             seeds = f"{len(rs)} seed{'s' if len(rs) != 1 else ''}" if rs else "no results"
             charts.append(ch.chart(path, f"{name}: {seeds}", x, y, PANEL))
@@ -208,7 +205,7 @@ def group_label(r: ExperimentResult) -> str:
 
     c = r.config
     cost = c.cost or DEFAULT_COST[(c.task, c.preset)]
-    text = f"{METHODS[c.method]}, k = {c.k:g}"
+    text = f"{METHODS[c.method].label}, k = {c.k:g}"
     if c.task != "unicycle":
         text += f", {cost} cost"
     if c.centre_std is None and c.policy == "rbf" and c.policy_init == "start":

@@ -34,7 +34,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from pipps.experiments.config import QUICK_CENTRE_HIGH, QUICK_CENTRE_LOW, ExperimentConfig, config_difference, same_experiment
-from pipps.experiments.methods import particle_method
+from pipps.experiments.methods import FIXED_SEED, MOMENTUM, PILCO_SEARCH, particle_method, rollout_config
 from pipps.gp import FitState, GPConfig, GPHyper, fit, make_data, pad_to_capacity
 from pipps.policies import init_linear_policy, init_pilco_rbf_policy, init_rbf_policy, init_rbf_policy_uniform
 from pipps.rollout import Trajectory, rollout, training_pairs
@@ -206,11 +206,8 @@ class _Programs:
 
 def _make_optimizer(cfg: ExperimentConfig, task: Task):
     """``optimize(key, policy, model, progress) -> (policy, trace dict, diagnostics dict, predicted dict)``."""
-    if cfg.is_pilco:
-        return _pilco_optimizer(cfg, task)
-    if cfg.fixed_seed:
-        return _fixed_seed_optimizer(cfg, task)
-    return _stochastic_optimizer(cfg, task)
+    build = {MOMENTUM: _stochastic_optimizer, FIXED_SEED: _fixed_seed_optimizer, PILCO_SEARCH: _pilco_optimizer}
+    return build[cfg.method_spec.optimizer](cfg, task)
 
 
 def predict_particles(task: Task, rcfg, store: int, key, policy, model):
@@ -296,7 +293,7 @@ def _fixed_seed_optimizer(cfg: ExperimentConfig, task: Task):
     from pipps.optimizers.quasi_newton import QuasiNewtonConfig
     from pipps.propagation.fixed_seed import optimize_fixed_seed
 
-    rcfg, _ = particle_method(cfg)
+    rcfg = rollout_config(cfg)
     qn = QuasiNewtonConfig(length=-cfg.policy_evals, max_evals_per_linesearch=30)
     search = jax.jit(lambda key, policy, model: optimize_fixed_seed(key, policy, model, task=task, config=rcfg,
                                                                      qn_config=qn))
@@ -358,7 +355,7 @@ def planning_model(cfg: ExperimentConfig, post, data, info):
     """The model the policy is optimised on: the posterior itself, or with ``variance_tol > 0`` under
     a particle method that uses the variance, its certified low-rank form (:mod:`pipps.gp.lowrank`;
     full GP or FITC). Returns ``(model, ranks or None)``."""
-    if cfg.variance_tol <= 0 or cfg.is_pilco or cfg.method == "tp-sf":
+    if cfg.variance_tol <= 0 or "variance_tol" not in cfg.method_spec.settings:
         return post, None
     from pipps.gp.lowrank import low_rank_model
 

@@ -222,24 +222,44 @@ MANIFEST = ".pipps-sweep.json"
 
 
 def _manifest_of(cfg: ExperimentConfig) -> dict[str, Any]:
-    return {"protocol": cfg.protocol,
-            "settings": {k: v for k, (v, _) in sorted(departures(cfg).items())}}
+    """``cfg``'s experiment preset and its departures from it, as they read back from JSON."""
+    text = json.dumps({"protocol": cfg.protocol, "settings": {k: v for k, (v, _) in sorted(departures(cfg).items())}},
+                      sort_keys=True, default=list)
+    return json.loads(text)  # tuples as lists
+
+
+def _sweep_manifest(configs: list[ExperimentConfig]) -> dict[str, Any]:
+    """The manifest of a sweep: its experiment preset and the union of its experiments' departures.
+    A method departs only in the settings it uses, so PILCO's cells of a ``--set num_particles=…``
+    sweep follow the preset; two experiments that give one setting two values are refused."""
+    mine = _manifest_of(configs[0])
+    for cfg in configs[1:]:
+        theirs = _manifest_of(cfg)
+        clash = [k for k, v in theirs["settings"].items() if mine["settings"].get(k, v) != v]
+        if theirs["protocol"] != mine["protocol"] or clash:
+            raise OutputError("the sweep's experiments depart from their preset in different settings "
+                              f"({theirs['settings']} against {mine['settings']})")
+        mine["settings"].update(theirs["settings"])
+    return mine
+
+
+def _follows(cfg: ExperimentConfig, manifest: dict[str, Any]) -> bool:
+    """Whether ``cfg`` belongs in a folder of ``manifest``: the same experiment preset, and departures
+    from it that are the manifest's own in every setting its method uses."""
+    wanted = {k: v for k, v in manifest.get("settings", {}).items() if k not in cfg.method_spec.unused}
+    return _manifest_of(cfg) == {"protocol": manifest.get("protocol"), "settings": wanted}
 
 
 def claim_sweep_folder(folder: str | os.PathLike, configs: list[ExperimentConfig], *, write: bool = True) -> None:
     """Check (and, with ``write``, create) the folder's manifest: every experiment a sweep puts in a
-    folder follows one experiment preset with one set of departures from it. A sweep whose settings
-    differ from the folder's is refused by name before anything runs."""
+    folder follows one experiment preset with one set of departures from it, each in the settings
+    its method uses (:func:`_follows`). A sweep whose settings differ from the folder's is refused
+    by name before anything runs."""
     if not configs:
         return
-    mine = _manifest_of(configs[0])
-    for cfg in configs[1:]:
-        if _manifest_of(cfg) != mine:
-            raise OutputError("the sweep's experiments depart from their preset in different settings "
-                              f"({_manifest_of(cfg)['settings']} against {mine['settings']})")
+    mine = _sweep_manifest(configs)
     path = Path(folder) / MANIFEST
-    text = json.dumps(mine, sort_keys=True, default=list)
-    mine = json.loads(text)  # tuples as lists, as they come back from the file
+    text = json.dumps(mine, sort_keys=True)
     if not path.exists():  # a folder from before manifests, or filled by `pipps run`: its files decide
         _check_existing_files(Path(folder), mine)
     if write:  # written whole to a temporary file, then linked into place: never seen half-written
@@ -260,7 +280,7 @@ def claim_sweep_folder(folder: str | os.PathLike, configs: list[ExperimentConfig
         theirs = json.loads(path.read_text())
     except (OSError, ValueError) as err:
         raise OutputError(f"{path} is not a readable sweep manifest ({err}); remove it or use another folder") from None
-    if theirs != mine:
+    if not all(_follows(cfg, theirs) for cfg in configs):
         raise OutputError(f"{folder} holds a sweep run with {_show(theirs)}; this one has {_show(mine)}. "
                           "One folder holds one protocol: use another --out")
 
@@ -280,7 +300,7 @@ def _check_existing_files(folder: Path, mine: dict[str, Any]) -> None:
             _, stored, _ = verify_result(path)
         except ResultError:
             continue  # damaged files are set aside when their experiment runs
-        theirs = json.loads(json.dumps(_manifest_of(stored), sort_keys=True, default=list))
-        if theirs != mine:
+        if not _follows(stored, mine):
+            theirs = _manifest_of(stored)
             raise OutputError(f"{folder} holds {path.name}, run with {_show(theirs)}; this sweep has {_show(mine)}. "
                               "One folder holds one protocol: use another --out")

@@ -14,7 +14,8 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from pipps.experiments.config import METHODS, ExperimentConfig, resolve_config
+from pipps.experiments.config import ConfigError, ExperimentConfig, canonical, resolve_config
+from pipps.experiments.methods import METHODS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,12 +138,26 @@ def table_configs(
     overrides: dict[str, Any] | None = None,
 ) -> list[ExperimentConfig]:
     """Every (cell × seed) configuration of a table. Seeds are ordered outermost, so a sweep
-    cut short has a few seeds of every cell rather than all seeds of a few cells."""
+    cut short has a few seeds of every cell rather than all seeds of a few cells.
+
+    Each override applies to the cells whose method uses it (``num_particles`` to the particle
+    methods, not to PILCO); one that no selected method uses is refused by name."""
     t = get_table(table) if isinstance(table, str) else table
     seed_list = list(range(seeds)) if isinstance(seeds, int) else list(seeds)
     cells = select_cells(t, methods, ks)
-    return [resolve_config(preset, t.task, method=c.method, seed=s, **dict(c.values), **(overrides or {}))
+    overrides = overrides or {}
+    chosen = sorted({c.method for c in cells})
+    for name in overrides:
+        key = name.replace("-", "_")
+        if chosen and all(key in METHODS[m].unused for m in chosen):
+            raise ConfigError(f"{key}: no method of the sweep uses it ({', '.join(chosen)})")
+    return [resolve_config(preset, t.task, method=c.method, seed=s, **dict(c.values), **_used(c.method, overrides))
             for s in seed_list for c in cells]
+
+
+def _used(method: str, overrides: dict[str, Any]) -> dict[str, Any]:
+    """The overrides ``method`` uses."""
+    return {k: v for k, v in overrides.items() if k.replace("-", "_") not in METHODS[method].unused}
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
@@ -275,13 +290,9 @@ class CellResult:
 
 
 def _settings(cfg: ExperimentConfig) -> dict[str, Any]:
-    """A configuration's settings other than the seed, with the default cost named (None ≡ the preset's)."""
-    from pipps.tasks.presets import DEFAULT_COST
-
-    d = {k: v for k, v in cfg.to_dict().items() if k != "seed"}
-    if d["cost"] is None:
-        d["cost"] = DEFAULT_COST[(cfg.task, cfg.preset)]
-    return d
+    """A configuration's identity (:func:`pipps.experiments.config.canonical`: the default cost named,
+    settings the method does not use and computational ones left out) other than the seed."""
+    return {k: v for k, v in canonical(cfg).items() if k != "seed"}
 
 
 def counts(cfg: ExperimentConfig, preset: str = "thesis", custom: bool = False) -> str:
@@ -369,7 +380,8 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
         return f"**{table.title}**: no complete results for this table."
     a, b = compare
     paired = a in methods and b in methods
-    head = [METHODS[m] for m in methods] + ([f"{METHODS[a]} − {METHODS[b]} [95 %], Fisher p"] if paired else [])
+    labels = {m: METHODS[m].label for m in methods}
+    head = list(labels.values()) + ([f"{labels[a]} − {labels[b]} [95 %], Fisher p"] if paired else [])
     lines = [f"**{table.title}** — ours: success rate by the physical criterion [95 % Wilson interval] (seeds) / "
              "thesis (`!`: the thesis value lies outside our interval); `· return r`: the rate by the thesis' "
              "return threshold", "", "| | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
@@ -402,7 +414,7 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
             lines.append(f"| {row} | " + " | ".join(cells) + " |")
     notes = []
     for r in results:
-        name = f"{r.cell.row}, {METHODS[r.cell.method]}"
+        name = f"{r.cell.row}, {METHODS[r.cell.method].label}"
         if r.mixed:
             notes.append(f"Warning: {name} pools results whose settings differ in {', '.join(r.mixed)}; read them "
                          "from separate folders.")
@@ -434,6 +446,6 @@ def render_curves(summaries: list[dict[str, Any]]) -> str:
         frac = s.get("final_balanced")
         frac = "" if frac is None else f"{frac:.2f}"
         se = s.get("final_se", math.nan)
-        lines.append(f"| {c.task} {METHODS[c.method]} k={c.k:g} seed {c.seed} | {'yes' if s['success'] else 'no'}{ret} | "
+        lines.append(f"| {c.task} {METHODS[c.method].label} k={c.k:g} seed {c.seed} | {'yes' if s['success'] else 'no'}{ret} | "
                      + " | ".join(vals) + f" | {s['eval_return'][-1]:.1f} ± {se:.1f} | {frac} | {s['wall_seconds'] / 60:.0f} |")
     return "\n".join(lines)
