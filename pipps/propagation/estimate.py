@@ -18,7 +18,7 @@ from jax.flatten_util import ravel_pytree
 
 from pipps.particles.forward import RolloutConfig, particle_rollout, sample_noise
 from pipps.propagation.config import Estimator
-from pipps.propagation.sweep import PreviousIteration, StepDiagnostics, backward_sweep, mean_returns
+from pipps.propagation.backward import PreviousIteration, StepDiagnostics, backward_sweep, mean_returns
 from pipps.tasks.base import Task
 
 

@@ -21,7 +21,7 @@ import optax
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import Estimator
 from pipps.propagation.estimate import EstimatorState, estimate, init_estimator_state
-from pipps.propagation.sweep import StepDiagnostics
+from pipps.propagation.backward import StepDiagnostics
 from pipps.tasks.base import Task
 
 
