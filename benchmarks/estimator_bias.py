@@ -74,8 +74,8 @@ def replicate_fn(task, model, policy, config: RolloutConfig, est):
         k_state, k_earlier, k_batch = jax.random.split(key, 3)
         state = init_estimator_state(k_state, policy, model, task=task, config=config, estimator=est)
         if needs_earlier_estimate(est):
-            _, state = estimate(k_earlier, state, policy, model, task=task, config=config, estimator=est)
-        e, _ = estimate(k_batch, state, policy, model, task=task, config=config, estimator=est)
+            state, _ = estimate(k_earlier, state, policy, model, task=task, config=config, estimator=est)
+        _, e = estimate(k_batch, state, policy, model, task=task, config=config, estimator=est)
         return ravel_pytree(e.grad)[0]
 
     return jax.jit(jax.vmap(one))

@@ -48,7 +48,7 @@ def flat(tree):
 def run(setup, est, cfg, key=3, state_key=9):
     task, post, pol = setup
     st = init_estimator_state(jax.random.PRNGKey(state_key), pol, post, task=task, config=cfg, estimator=est)
-    e, _ = estimate(jax.random.PRNGKey(key), st, pol, post, task=task, config=cfg, estimator=est)
+    _, e = estimate(jax.random.PRNGKey(key), st, pol, post, task=task, config=cfg, estimator=est)
     return e
 
 

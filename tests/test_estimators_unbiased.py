@@ -114,8 +114,8 @@ def replicate_gradients(task, model, policy, config: RolloutConfig, est, key, nu
         k_state, k_earlier, k_batch = jax.random.split(k, 3)
         state = init_estimator_state(k_state, policy, model, task=task, config=config, estimator=est)
         if _needs_earlier_estimate(est):
-            _, state = estimate(k_earlier, state, policy, model, task=task, config=config, estimator=est)
-        e, _ = estimate(k_batch, state, policy, model, task=task, config=config, estimator=est)
+            state, _ = estimate(k_earlier, state, policy, model, task=task, config=config, estimator=est)
+        _, e = estimate(k_batch, state, policy, model, task=task, config=config, estimator=est)
         return ravel_pytree(e.grad)[0]
 
     fn = jax.jit(jax.vmap(one))
@@ -314,7 +314,7 @@ def test_rp_follows_state_dependent_noise_like_finite_differences():
     def rp_sweep(m):
         est = estimator("rp")
         state = init_estimator_state(jax.random.PRNGKey(1), policy, m, task=task, config=cfg, estimator=est)
-        e, _ = estimate(key, state, policy, m, task=task, config=cfg, estimator=est)
+        _, e = estimate(key, state, policy, m, task=task, config=cfg, estimator=est)
         return ravel_pytree(e.grad)[0]
 
     fd = central_differences(model, 1e-4)  # the forward pass is the same for `held`

@@ -194,7 +194,7 @@ def test_tp_with_an_intermediate_constant_k_matches_a_direct_loop(weighting):
     cfg = RolloutConfig(num_particles=5, model_variance=False)
     est = estimator("tp", weighting=weighting, k_lr=0.3)
     state = init_estimator_state(jax.random.PRNGKey(9), policy, model, task=task, config=cfg, estimator=est)
-    e, _ = estimate(jax.random.PRNGKey(3), state, policy, model, task=task, config=cfg, estimator=est)
+    _, e = estimate(jax.random.PRNGKey(3), state, policy, model, task=task, config=cfg, estimator=est)
     noise = sample_noise(jax.random.PRNGKey(3), task, cfg)
     ref = _direct_tp(task, model, policy, noise, 0.3, weighting, np.asarray(state.baseline))
     got = np.asarray(ravel_pytree(e.grad)[0])

@@ -225,7 +225,7 @@ def _state_for(kp, ks, policy, model, task, config, est: Estimator) -> Estimator
     """
     state = init_estimator_state(kp, policy, model, task=task, config=config, estimator=est)
     if est.total_propagation and est.k_lr == "previous":
-        _, state = estimate(ks, state, policy, model, task=task, config=config, estimator=est)
+        state, _ = estimate(ks, state, policy, model, task=task, config=config, estimator=est)
     return state
 
 
@@ -246,7 +246,7 @@ def replicate_gradients(
         grads, ks_lr = {}, {}
         for name, est in estimators.items():
             state = _state_for(kp, ks, policy, model, task, config, est)
-            e, _ = estimate(ke, state, policy, model, task=task, config=config, estimator=est)
+            _, e = estimate(ke, state, policy, model, task=task, config=config, estimator=est)
             grads[name] = ravel_pytree(e.grad)[0]
             ks_lr[name] = e.diagnostics.k_lr
         return grads, ks_lr
