@@ -83,7 +83,7 @@ def lyapunov_table(seed: int) -> list[str]:
     lines = ["| setting | K | T | mean λ | 10 % | median | 90 % | max |", "|---|---|---|---|---|---|---|---|"]
     for setting, s in SETTINGS.items():
         task, model, policy = kicked_rotor_system(setting)
-        lam = np.asarray(finite_time_lyapunov(task, model, policy, jax.random.PRNGKey(seed), num_particles=2000))
+        lam = np.asarray(finite_time_lyapunov(jax.random.PRNGKey(seed), task, model, policy, num_particles=2000))
         q = np.quantile(lam, [0.1, 0.5, 0.9])
         lines.append(f"| {setting} | {s['kick']} | {s['horizon']} | {lam.mean():.3f} | {q[0]:.3f} | {q[1]:.3f} | {q[2]:.3f} | {lam.max():.3f} |")
     return lines

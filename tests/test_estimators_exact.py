@@ -31,7 +31,7 @@ def setup():
     task = make_task("cartpole_swingup", horizon=8)
     X, Y = [], []
     for s in range(2):
-        tr = rollout(task, jax.random.PRNGKey(s))
+        tr = rollout(jax.random.PRNGKey(s), task)
         i, t = training_pairs(task, tr)
         X.append(i)
         Y.append(t)

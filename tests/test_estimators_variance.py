@@ -207,7 +207,7 @@ def test_lyapunov_exponents_separate_the_settings():
     lam = {}
     for setting in ("chaotic", "smooth"):
         task, model, policy = kicked_rotor_system(setting)
-        lam[setting] = np.asarray(finite_time_lyapunov(task, model, policy, jax.random.PRNGKey(0), num_particles=500))
+        lam[setting] = np.asarray(finite_time_lyapunov(jax.random.PRNGKey(0), task, model, policy, num_particles=500))
     assert np.median(lam["chaotic"]) > 0.05 and np.quantile(lam["chaotic"], 0.1) > 0.0
     assert abs(np.median(lam["smooth"])) < 0.02
     assert np.median(lam["chaotic"]) > 5 * abs(np.median(lam["smooth"]))

@@ -483,7 +483,7 @@ def test_propagate_is_step_moments():
 def cartpole_data(preset: str, n_rollouts: int = 3):
     """Task, training data of random rollouts of the true system and the GP trained on it (pipps.gp.fit)."""
     task = make_task("cartpole_swingup", preset=preset)
-    xs, ys = zip(*(training_pairs(task, rollout(task, jax.random.key(i))) for i in range(n_rollouts)))
+    xs, ys = zip(*(training_pairs(task, rollout(jax.random.key(i), task)) for i in range(n_rollouts)))
     data = gp.make_data(np.concatenate(xs), np.concatenate(ys))
     post, _, _ = gp.fit(None, data)
     return task, data, post

@@ -177,7 +177,7 @@ def kicked_rotor_system(setting: str = "chaotic", *, horizon: int | None = None)
     return task, model, policy
 
 
-def finite_time_lyapunov(task: Task, model, policy, key: jax.Array, *, num_particles: int = 256, horizon: int | None = None) -> jax.Array:
+def finite_time_lyapunov(key: jax.Array, task: Task, model, policy, *, num_particles: int = 256, horizon: int | None = None) -> jax.Array:
     """(P,) finite-time maximal Lyapunov exponents (per step) of the closed, noisy loop.
 
     For each particle a tangent vector is pushed through the total Jacobian ``dx_{t+1}/dx_t``
