@@ -40,13 +40,12 @@ import zlib
 
 import jax
 import numpy as np
-import scipy.stats
 from jax.flatten_util import ravel_pytree
 
 import pipps  # noqa: F401  (float64)
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import estimator, thesis_estimator
-from pipps.propagation.estimate import estimate, init_estimator_state
+from pipps.stats import replicate_gradients, z_bound
 from pipps.systems import exact_objective, reference_system
 
 # name: (estimator, particle counts, what the row shows)
@@ -60,35 +59,6 @@ ESTIMATORS = {
 }
 NOISE_STDS = (0.1, 0.3)
 COST = "saturating"
-
-
-def needs_earlier_estimate(est) -> bool:
-    """Whether the recorded estimate reads the previous iteration's k_LR."""
-    return est.total_propagation and est.k_lr == "previous"
-
-
-def replicate_fn(task, model, policy, config: RolloutConfig, est):
-    """A jitted ``keys (n, 2) -> flat gradients (n, n_θ)``: one independent replicate per key."""
-
-    def one(key):
-        k_state, k_earlier, k_batch = jax.random.split(key, 3)
-        state = init_estimator_state(k_state, policy, model, task=task, config=config, estimator=est)
-        if needs_earlier_estimate(est):
-            _, state = estimate(k_earlier, state, policy, model, task=task, config=config, estimator=est)
-        e, _ = estimate(k_batch, state, policy, model, task=task, config=config, estimator=est)
-        return ravel_pytree(e.grad)[0]
-
-    return jax.jit(jax.vmap(one))
-
-
-def replicate_gradients(task, model, policy, config: RolloutConfig, est, key, num: int) -> np.ndarray:
-    """(num, n_θ) independent replicate estimates, in chunks small enough for memory (chunk·P² ≤ 5e6)."""
-    P = config.num_particles
-    chunk = int(min(num, max(16, 5_000_000 // P**2)))
-    fn = replicate_fn(task, model, policy, config, est)
-    keys = jax.random.split(key, -(-num // chunk) * chunk)
-    out = [np.asarray(fn(keys[i : i + chunk])) for i in range(0, len(keys), chunk)]
-    return np.concatenate(out)[:num]
 
 
 def exact_gradient(task, model, policy, config: RolloutConfig) -> np.ndarray:
@@ -135,18 +105,13 @@ def run(budget: int, seed: int, names, particles, noise_stds, log=print) -> list
                 R = max(2, budget // P)
                 label = f"{name}|P={P}|noise={noise}"
                 t0 = time.perf_counter()
-                grads = replicate_gradients(task, model, policy, config, est, config_key(seed, label), R)
+                grads = replicate_gradients(config_key(seed, label), task, model, policy, config, est, R)
                 row = {"estimator": name, "P": P, "noise_std": noise, "seconds": time.perf_counter() - t0}
                 row.update(bias_summary(grads, exact_gradient(task, model, policy, config)))
                 rows.append(row)
                 log(f"# {label}: R={R} rel.bias={row['rel_bias']:.4f}±{row['rel_bias_se']:.4f} "
                     f"floor={row['noise_floor']:.4f} max|z|={np.max(np.abs(row['z'])):.1f} ({row['seconds']:.0f} s)")
     return rows
-
-
-def z_bound(num_comparisons: int, alpha: float = 1e-3) -> float:
-    """Two-sided normal quantile at family-wise α, Bonferroni over ``num_comparisons``."""
-    return float(scipy.stats.norm.isf(alpha / (2 * num_comparisons)))
 
 
 def markdown_table(rows: list[dict]) -> str:

@@ -81,7 +81,7 @@ def make_call(task, model, policy, name, overrides, P, T):
     state = init_estimator_state(jax.random.PRNGKey(123), policy, model, task=task, config=cfg, estimator=est)
 
     def g(key, pol):
-        e, _ = estimate(key, state, pol, model, task=task, config=cfg, estimator=est)
+        _, e = estimate(key, state, pol, model, task=task, config=cfg, estimator=est)
         return e.value, e.grad
 
     return jax.jit(g)

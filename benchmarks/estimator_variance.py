@@ -3,7 +3,7 @@
 Fixed protocol (:mod:`pipps.systems.chaotic`): the controlled standard map, ``"chaotic"``
 (K = 2) and ``"smooth"`` (K = 0.1), T = 30, the fixed saturated linear policy (4 parameters),
 zero epistemic variance. For each setting and P, R replicates of every estimator on common
-random numbers (:func:`~pipps.systems.chaotic.replicate_gradients`: BIW-LR's "previous"
+random numbers (:func:`~pipps.stats.paired_replicate_gradients`: BIW-LR's "previous"
 baseline from an independent extra rollout, TP's "previous" k_LR from an independent earlier
 estimate). Variance = trace of the covariance over replicates. Ratios come with a 95 % interval
 from the delta method on paired replicates (:func:`~pipps.systems.chaotic.log_variance_ratio`).
@@ -29,14 +29,8 @@ import numpy as np
 import pipps  # noqa: F401
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import estimator
-from pipps.systems.chaotic import (
-    SETTINGS,
-    finite_time_lyapunov,
-    kicked_rotor_system,
-    log_variance_ratio,
-    replicate_gradients,
-    trace_variance,
-)
+from pipps.stats import log_variance_ratio, paired_replicate_gradients, trace_variance
+from pipps.systems.chaotic import SETTINGS, finite_time_lyapunov, kicked_rotor_system
 
 ESTIMATORS = {
     "RP": estimator("rp"),
@@ -52,7 +46,7 @@ def run_replicates(setting: str, P: int, R: int, seed: int, estimators: dict):
     cfg = RolloutConfig(num_particles=P, model_variance=False)
     run = jax.jit(
         functools.partial(
-            replicate_gradients, task=task, model=model, policy=policy, config=cfg,
+            paired_replicate_gradients, task=task, model=model, policy=policy, config=cfg,
             estimators=estimators, num_replicates=R,
         )
     )
@@ -83,7 +77,7 @@ def lyapunov_table(seed: int) -> list[str]:
     lines = ["| setting | K | T | mean λ | 10 % | median | 90 % | max |", "|---|---|---|---|---|---|---|---|"]
     for setting, s in SETTINGS.items():
         task, model, policy = kicked_rotor_system(setting)
-        lam = np.asarray(finite_time_lyapunov(task, model, policy, jax.random.PRNGKey(seed), num_particles=2000))
+        lam = np.asarray(finite_time_lyapunov(jax.random.PRNGKey(seed), task, model, policy, num_particles=2000))
         q = np.quantile(lam, [0.1, 0.5, 0.9])
         lines.append(f"| {setting} | {s['kick']} | {s['horizon']} | {lam.mean():.3f} | {q[0]:.3f} | {q[1]:.3f} | {q[2]:.3f} | {lam.max():.3f} |")
     return lines

@@ -42,7 +42,7 @@ def collect(task, n_pairs: int, seed: int = 0):
     """Random-rollout training pairs of the true system, exactly ``n_pairs`` of them."""
     xs, ys, i = [], [], 0
     while sum(len(x) for x in xs) < n_pairs:
-        x, y = training_pairs(task, rollout(task, jax.random.key(seed + i)))
+        x, y = training_pairs(task, rollout(jax.random.key(seed + i), task))
         xs.append(x)
         ys.append(y)
         i += 1

@@ -37,7 +37,7 @@ def main():
         snap = load_snapshot(path, int(trial))
         rcfg, est = particle_method(snap.config)
         kw = dict(task=snap.task, config=rcfg, estimator=est)
-        grad = jax.jit(lambda key, state, model: ravel_pytree(estimate(key, state, snap.policy, model, **kw)[0].grad)[0])
+        grad = jax.jit(lambda key, state, model: ravel_pytree(estimate(key, state, snap.policy, model, **kw)[1].grad)[0])
         state = init_estimator_state(jax.random.PRNGKey(99), snap.policy, snap.model, **kw)
         keys = [jax.random.PRNGKey(1000 + r) for r in range(args.repeats)]
         exact = np.stack([np.asarray(grad(k, state, snap.model)) for k in keys])

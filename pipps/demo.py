@@ -44,7 +44,7 @@ def random_policy_rollouts(
             pol = init_linear_policy(key_pol, d, task.u_max)
         else:
             pol = init_rbf_policy(key_pol, 50, np.zeros(d), np.eye(d), task.u_max)
-    run = jax.jit(jax.vmap(lambda key: rollout(task, key, pol)))
+    run = jax.jit(jax.vmap(lambda key: rollout(key, task, pol)))
     trajs = run(jax.random.split(key_roll, episodes))
     return RolloutReport(
         task_name,

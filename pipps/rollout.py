@@ -32,7 +32,7 @@ class Trajectory(NamedTuple):
         return jnp.sum(jnp.where(self.valid, self.costs, 0.0), axis=-1)
 
 
-def sample_initial_state(task: Task, key: jax.Array) -> jax.Array:
+def sample_initial_state(key: jax.Array, task: Task) -> jax.Array:
     """s_0 ~ N(μ0, Σ0) in simulator coordinates (tasks.md §1.1)."""
     return jax.random.multivariate_normal(
         key, jnp.asarray(task.init_mean), jnp.asarray(task.init_cov), method="svd"
@@ -40,8 +40,8 @@ def sample_initial_state(task: Task, key: jax.Array) -> jax.Array:
 
 
 def rollout(
-    task: Task,
     key: jax.Array,
+    task: Task,
     policy: Callable[[jax.Array], jax.Array] | None = None,
     *,
     horizon: int | None = None,
@@ -56,7 +56,7 @@ def rollout(
     """
     H = task.horizon if horizon is None else int(horizon)
     k0, k_obs, k_act = jax.random.split(key, 3)
-    s0 = sample_initial_state(task, k0)
+    s0 = sample_initial_state(k0, task)
     noise_std = jnp.asarray(task.obs_noise_std)
     obs_noise = noise_std * jax.random.normal(k_obs, (H + 1, task.sim_dim))
     u_rand = jnp.asarray(task.u_rand)

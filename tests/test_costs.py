@@ -16,7 +16,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
-import scipy.stats
 
 import pipps  # noqa: F401  (enables x64)
 from pipps.costs import (
@@ -26,7 +25,7 @@ from pipps.costs import (
     unicycle_cost,
 )
 from pipps.gaussian import expected_saturating_cost, linear_map, trig_augment, trig_moments
-from mc_stats import cov_z, cross_z, mean_z
+from pipps.stats import cov_z, cross_z, mean_z, z_bound
 
 N_MC = 1_000_000
 FAMILY_ALPHA = 1e-3
@@ -43,11 +42,6 @@ TASK_COSTS = ["angle", "tip", "unicycle"]
 
 
 # -- helpers ---------------------------------------------------------------------------------
-def z_bound(n_comparisons: int) -> float:
-    """Two-sided normal quantile with Bonferroni correction at family level FAMILY_ALPHA."""
-    return float(scipy.stats.norm.isf(FAMILY_ALPHA / (2 * n_comparisons)))
-
-
 def random_gaussian(rng, dim, mean_scale, cov_scale, rank=None):
     """Mean ~ N(0, mean_scale²), covariance B Bᵀ with B (dim, rank) ~ N(0, cov_scale²/rank)."""
     rank = dim if rank is None else rank
@@ -143,7 +137,7 @@ def test_tip_cost_reference_monte_carlo_gap():
     n = len(c)
     se_mean = c.std(ddof=1) / np.sqrt(n)
     se_var = np.sqrt((np.mean((c - c.mean()) ** 4) - c.var(ddof=1) ** 2) / n)
-    b = z_bound(2)
+    b = z_bound(2, FAMILY_ALPHA)
     assert abs(c.mean() - 0.3789) <= b * se_mean + 5e-5
     assert abs(c.var(ddof=1) - 0.0959) <= b * se_var + 5e-5
 
@@ -246,7 +240,7 @@ def test_trig_augment_against_monte_carlo(case):
     z = np.concatenate(
         [mean_z(t["aug"], t["m"]), cov_z(t["aug"], t["S"]), cross_z(t["u"], t["trig"], t["C"])]
     )
-    assert np.max(z) < z_bound(z.size), (np.max(z), z_bound(z.size))
+    assert np.max(z) < z_bound(z.size, FAMILY_ALPHA), (np.max(z), z_bound(z.size, FAMILY_ALPHA))
 
 
 def test_trig_monte_carlo_has_power():
@@ -261,7 +255,7 @@ def test_trig_monte_carlo_has_power():
                 block[i, :, j, :] = 0.0
     wrong[dim:, dim:] = block.reshape(2 * n_ang, 2 * n_ang)
     z = cov_z(t["aug"], wrong)
-    assert np.max(z) > z_bound(z.size)
+    assert np.max(z) > z_bound(z.size, FAMILY_ALPHA)
 
 
 def test_trig_moments_zero_covariance_is_pointwise():
@@ -340,7 +334,7 @@ def test_expected_saturating_cost_against_monte_carlo(name, rank):
     d = y - cost.target
     c = 1 - np.exp(-0.5 * np.einsum("ni,ij,nj->n", d, cost.W, d))
     z_e, z_v = moments_of_variance_z(c, float(e), float(v))
-    assert max(z_e, z_v) < z_bound(2), (z_e, z_v)
+    assert max(z_e, z_v) < z_bound(2, FAMILY_ALPHA), (z_e, z_v)
 
 
 @pytest.mark.parametrize("name", ["angle", "angle_0.01"])
@@ -352,7 +346,7 @@ def test_angle_cost_expected_is_exact_against_monte_carlo(name):
     x = mean + normal_samples(8, N_MC, 4) @ np.linalg.cholesky(cov).T
     c = np.asarray(cost(jnp.asarray(x)))
     z_e, z_v = moments_of_variance_z(c, float(e), float(v))
-    assert max(z_e, z_v) < z_bound(2), (z_e, z_v)
+    assert max(z_e, z_v) < z_bound(2, FAMILY_ALPHA), (z_e, z_v)
 
 
 @pytest.mark.parametrize("name", list(COSTS))

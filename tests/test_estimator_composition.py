@@ -36,7 +36,7 @@ def flat(tree):
 def one(system, est, key=3):
     task, model, policy = system
     st = init_estimator_state(jax.random.PRNGKey(9), policy, model, task=task, config=CFG, estimator=est)
-    return estimate(jax.random.PRNGKey(key), st, policy, model, task=task, config=CFG, estimator=est)[0]
+    return estimate(jax.random.PRNGKey(key), st, policy, model, task=task, config=CFG, estimator=est)[1]
 
 
 @pytest.mark.parametrize(
@@ -115,13 +115,13 @@ def test_numbers_are_traced_and_do_not_recompile(system):
 
     @jax.jit
     def grad(est, key):
-        return ravel_pytree(estimate(key, st, policy, model, task=task, config=CFG, estimator=est)[0].grad)[0]
+        return ravel_pytree(estimate(key, st, policy, model, task=task, config=CFG, estimator=est)[1].grad)[0]
 
     key = jax.random.PRNGKey(3)
     g3, g7 = grad(estimator("tp", k_lr=0.3), key), grad(estimator("tp", k_lr=0.7), key)
     assert grad._cache_size() == 1
     assert not np.allclose(g3, g7)
-    closed = estimate(key, st, policy, model, task=task, config=CFG, estimator=estimator("tp", k_lr=0.7))[0].grad
+    closed = estimate(key, st, policy, model, task=task, config=CFG, estimator=estimator("tp", k_lr=0.7))[1].grad
     np.testing.assert_allclose(np.asarray(g7), flat(closed), rtol=1e-12, atol=1e-15)
     grad(estimator("tp", combiner="robust", robust_gamma=0.1), key)
     grad(estimator("tp", combiner="robust", robust_gamma=3.0, robust_z=0.5), key)

@@ -35,7 +35,7 @@ def test_vmap_over_seeds_equals_a_loop(system):
     policies = jax.tree.map(lambda p: jnp.stack([p, 1.1 * p, 0.9 * p]), policy)
     init = lambda k, p: init_estimator_state(k, p, model, task=task, config=CFG, estimator=est)  # noqa: E731
     states = jax.vmap(init)(keys, policies)
-    run = lambda k, s, p: estimate(k, s, p, model, task=task, config=CFG, estimator=est)[0].grad  # noqa: E731
+    run = lambda k, s, p: estimate(k, s, p, model, task=task, config=CFG, estimator=est)[1].grad  # noqa: E731
     batched = jax.jit(jax.vmap(run))(keys, states, policies)
     for i in range(3):
         pol_i = jax.tree.map(lambda a: a[i], policies)
@@ -64,7 +64,7 @@ def test_fixed_seed_is_deterministic_and_fresh_keys_are_not(system):
     _, info_f = fixed(jax.random.PRNGKey(5), st, model, num_steps=3)
     _, info_r = fresh(jax.random.PRNGKey(5), st, model, num_steps=3)
     # fixed seed: the same noise, so the objective changes only through θ and is smooth in it
-    e = lambda k, p: estimate(k, st.estimator_state, p, model, task=task, config=CFG, estimator=est)[0].value  # noqa: E731
+    e = lambda k, p: estimate(k, st.estimator_state, p, model, task=task, config=CFG, estimator=est)[1].value  # noqa: E731
     assert float(info_f.value[0]) == pytest.approx(float(e(jax.random.PRNGKey(5), policy)), rel=1e-14)
     assert float(info_r.value[1]) != float(info_f.value[1])
 

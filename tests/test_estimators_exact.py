@@ -31,7 +31,7 @@ def setup():
     task = make_task("cartpole_swingup", horizon=8)
     X, Y = [], []
     for s in range(2):
-        tr = rollout(task, jax.random.PRNGKey(s))
+        tr = rollout(jax.random.PRNGKey(s), task)
         i, t = training_pairs(task, tr)
         X.append(i)
         Y.append(t)
@@ -48,7 +48,7 @@ def flat(tree):
 def run(setup, est, cfg, key=3, state_key=9):
     task, post, pol = setup
     st = init_estimator_state(jax.random.PRNGKey(state_key), pol, post, task=task, config=cfg, estimator=est)
-    e, _ = estimate(jax.random.PRNGKey(key), st, pol, post, task=task, config=cfg, estimator=est)
+    _, e = estimate(jax.random.PRNGKey(key), st, pol, post, task=task, config=cfg, estimator=est)
     return e
 
 

@@ -59,7 +59,7 @@ def setup(model, horizon, init_cov=0.01, target=0.0, P=64):
 def one_estimate(task, policy, model, cfg, name, **kw):
     est = estimator(name, **kw)
     st = init_estimator_state(jax.random.PRNGKey(1), policy, model, task=task, config=cfg, estimator=est)
-    e, _ = estimate(jax.random.PRNGKey(2), st, policy, model, task=task, config=cfg, estimator=est)
+    _, e = estimate(jax.random.PRNGKey(2), st, policy, model, task=task, config=cfg, estimator=est)
     return e
 
 

@@ -37,7 +37,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import scipy.stats
 from jax.flatten_util import ravel_pytree
 from jax.tree_util import register_dataclass
 
@@ -45,6 +44,7 @@ import pipps  # noqa: F401  (float64)
 from pipps.particles.forward import RolloutConfig, reparameterized_objective, sample_noise
 from pipps.propagation.config import estimator, thesis_estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
+from pipps.stats import replicate_gradients, z_bound
 from pipps.systems import exact_objective, reference_system
 
 ALPHA = 1e-3  # family-wise false-alarm probability of each family of comparisons
@@ -90,39 +90,12 @@ def _is_default(case: Case) -> bool:
     return case.cost == "saturating" and case.noise == 0.3 and case.P == 30
 
 
-def z_bound(num_comparisons: int, alpha: float = ALPHA) -> float:
-    """Two-sided normal quantile at family-wise α, Bonferroni-corrected over ``num_comparisons``."""
-    return float(scipy.stats.norm.isf(alpha / (2 * num_comparisons)))
-
-
 # One bound for every unbiasedness comparison (default and slow alike) and for the power tests,
 # which must fail exactly the test the unbiased estimators pass.
-Z_BOUND = z_bound(len(GRID) * N_THETA)
+Z_BOUND = z_bound(len(GRID) * N_THETA, ALPHA)
 
 
 # -- replicates ----------------------------------------------------------------------------------
-
-
-def _needs_earlier_estimate(est) -> bool:
-    return est.total_propagation and est.k_lr == "previous"
-
-
-def replicate_gradients(task, model, policy, config: RolloutConfig, est, key, num: int) -> np.ndarray:
-    """(num, n_θ) independent replicate estimates: jit + vmap over keys, chunked for memory."""
-
-    def one(k):
-        k_state, k_earlier, k_batch = jax.random.split(k, 3)
-        state = init_estimator_state(k_state, policy, model, task=task, config=config, estimator=est)
-        if _needs_earlier_estimate(est):
-            _, state = estimate(k_earlier, state, policy, model, task=task, config=config, estimator=est)
-        e, _ = estimate(k_batch, state, policy, model, task=task, config=config, estimator=est)
-        return ravel_pytree(e.grad)[0]
-
-    fn = jax.jit(jax.vmap(one))
-    P = config.num_particles
-    chunk = int(min(num, max(16, 5_000_000 // P**2)))
-    keys = jax.random.split(key, -(-num // chunk) * chunk)
-    return np.concatenate([np.asarray(fn(keys[i : i + chunk])) for i in range(0, len(keys), chunk)])[:num]
 
 
 def exact_gradient(task, model, policy) -> np.ndarray:
@@ -152,7 +125,7 @@ def replicates(name: str, cost: str, noise: float, P: int, R: int, blind_policy:
     task, model, policy = reference_system(noise, cost)
     used = StateBlindPolicy(policy) if blind_policy else policy
     label = f"{name}|{cost}|{noise}|{P}|{R}|{blind_policy}"
-    g = replicate_gradients(task, model, used, RolloutConfig(num_particles=P), est, case_key(label), R)
+    g = replicate_gradients(case_key(label), task, model, used, RolloutConfig(num_particles=P), est, R)
     return Replicates(g.mean(axis=0), g.std(axis=0, ddof=1) / np.sqrt(R), exact_gradient(task, model, policy))
 
 
@@ -241,7 +214,7 @@ PINS = [
     pytest.param("lr_thesis", 0.3, 100, 12000, id="lr-thesis-baseline-P100-R12000", marks=pytest.mark.slow),  # ≈ 21
     pytest.param("tp_kbatch", 0.3, 30, 40000, id="tp-k-batch-P30-R40000", marks=pytest.mark.slow),  # ≈ 7.7
 ]
-PIN_BOUND = z_bound(N_THETA * len(PINS))  # Bonferroni over every pinned coordinate
+PIN_BOUND = z_bound(N_THETA * len(PINS), ALPHA)  # Bonferroni over every pinned coordinate
 
 
 @pytest.mark.parametrize("name, noise, P, R", PINS)
@@ -314,7 +287,7 @@ def test_rp_follows_state_dependent_noise_like_finite_differences():
     def rp_sweep(m):
         est = estimator("rp")
         state = init_estimator_state(jax.random.PRNGKey(1), policy, m, task=task, config=cfg, estimator=est)
-        e, _ = estimate(key, state, policy, m, task=task, config=cfg, estimator=est)
+        _, e = estimate(key, state, policy, m, task=task, config=cfg, estimator=est)
         return ravel_pytree(e.grad)[0]
 
     fd = central_differences(model, 1e-4)  # the forward pass is the same for `held`

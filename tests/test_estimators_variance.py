@@ -3,7 +3,7 @@
 System: the controlled kicked rotor (Chirikov standard map) of :mod:`pipps.systems.chaotic`,
 ``"chaotic"`` (K = 2, T = 30: RP's variance ~10¹⁰–10¹¹) and ``"smooth"`` (K = 0.1, T = 30).
 For each P, R independent replicates of every estimator on common random numbers
-(:func:`~pipps.systems.chaotic.replicate_gradients`; BIW-LR gets its "previous" baseline from an
+(:func:`~pipps.stats.paired_replicate_gradients`; BIW-LR gets its "previous" baseline from an
 independent extra rollout, TP its "previous" k_LR from an independent earlier estimate). The
 variance of an estimator is the trace of the covariance of its R estimates.
 
@@ -18,7 +18,7 @@ Claims (the issue; estimators.md §3–§4; thesis Fig. 4.13):
 
 The bound (no hand-tuned δ). The trace variance is a mean over replicates of the squared
 deviations ``d_r = ‖g_r − ḡ‖²``, so ``log(V̂_a/V̂_b)`` is asymptotically normal with a standard
-error estimated from the paired ``d``'s (delta method, :func:`~pipps.systems.chaotic.log_variance_ratio`).
+error estimated from the paired ``d``'s (delta method, :func:`~pipps.stats.log_variance_ratio`).
 That SE uses the empirical fourth moments and the pairing of estimators on the same particles;
 an F- or χ²-bound would instead assume Gaussian, independent estimates, and both assumptions are
 false here (RP's and TP's gradients are heavy-tailed; the estimators share particles), which makes
@@ -42,26 +42,20 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
-from scipy.stats import norm
 
 import pipps  # noqa: F401
 from pipps.particles.forward import RolloutConfig, particle_rollout, sample_noise
 from pipps.propagation.config import estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
-from pipps.systems.chaotic import (
-    finite_time_lyapunov,
-    kicked_rotor_system,
-    log_variance_ratio,
-    replicate_gradients,
-    trace_variance,
-)
+from pipps.stats import log_variance_ratio, paired_replicate_gradients, trace_variance, z_bound
+from pipps.systems.chaotic import finite_time_lyapunov, kicked_rotor_system
 
 # Replicates per P: enough that a 1.5× variance ratio is resolved at the family-wise level
 # (SE of a log variance ratio ≈ 1–1.8/√R here; P = 300 is slow, O(P²) BIW weights).
 R = {30: 1000, 100: 400, 300: 400}
 ALPHA = 0.01  # family-wise level of all variance comparisons below
 FAMILY = 21  # 4 (setting, P) cells × (1 BIW-vs-plain + 2 TP + 2 thesis-TP comparisons) + the smooth RP contrast
-Z = float(norm.ppf(1.0 - ALPHA / FAMILY))  # ≈ 3.30
+Z = z_bound(FAMILY, ALPHA, two_sided=False)  # ≈ 3.30
 
 ESTIMATORS = {
     "rp": estimator("rp"),
@@ -87,7 +81,7 @@ def replicates(setting: str, P: int):
     cfg = RolloutConfig(num_particles=P, model_variance=False)  # zero epistemic variance: skip it
     run = jax.jit(
         functools.partial(
-            replicate_gradients, task=task, model=model, policy=policy, config=cfg,
+            paired_replicate_gradients, task=task, model=model, policy=policy, config=cfg,
             estimators=ESTIMATORS, num_replicates=R[P],
         )
     )
@@ -194,7 +188,7 @@ def test_tp_with_an_intermediate_constant_k_matches_a_direct_loop(weighting):
     cfg = RolloutConfig(num_particles=5, model_variance=False)
     est = estimator("tp", weighting=weighting, k_lr=0.3)
     state = init_estimator_state(jax.random.PRNGKey(9), policy, model, task=task, config=cfg, estimator=est)
-    e, _ = estimate(jax.random.PRNGKey(3), state, policy, model, task=task, config=cfg, estimator=est)
+    _, e = estimate(jax.random.PRNGKey(3), state, policy, model, task=task, config=cfg, estimator=est)
     noise = sample_noise(jax.random.PRNGKey(3), task, cfg)
     ref = _direct_tp(task, model, policy, noise, 0.3, weighting, np.asarray(state.baseline))
     got = np.asarray(ravel_pytree(e.grad)[0])
@@ -207,7 +201,7 @@ def test_lyapunov_exponents_separate_the_settings():
     lam = {}
     for setting in ("chaotic", "smooth"):
         task, model, policy = kicked_rotor_system(setting)
-        lam[setting] = np.asarray(finite_time_lyapunov(task, model, policy, jax.random.PRNGKey(0), num_particles=500))
+        lam[setting] = np.asarray(finite_time_lyapunov(jax.random.PRNGKey(0), task, model, policy, num_particles=500))
     assert np.median(lam["chaotic"]) > 0.05 and np.quantile(lam["chaotic"], 0.1) > 0.0
     assert abs(np.median(lam["smooth"])) < 0.02
     assert np.median(lam["chaotic"]) > 5 * abs(np.median(lam["smooth"]))

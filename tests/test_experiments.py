@@ -304,7 +304,7 @@ def test_unicycle_evaluation_charges_fallen_steps():
     keys = jax.random.split(jax.random.PRNGKey(3), 4)
     returns, upright, _ = _Programs(cfg, task).evaluate_random(keys)
     for key, ret, up in zip(keys, np.asarray(returns), np.asarray(upright)):
-        traj = rollout(task, key, None)
+        traj = rollout(key, task, None)
         valid = np.asarray(traj.valid)
         assert ret == pytest.approx(float(traj.total_cost) + (task.horizon - valid.sum()), abs=1e-12)
         assert bool(up) == bool(valid.all())
@@ -324,7 +324,7 @@ def test_a_non_finite_state_ends_a_unicycle_episode_as_a_fall():
         return jnp.where(jnp.maximum(jnp.abs(s[7]), jnp.abs(s[10])) > 0.3, jnp.nan, unicycle_ode(s, u))
 
     task = make_task("unicycle", "thesis", ode=brittle_ode)
-    trajs = jax.vmap(lambda k: rollout(task, k, None))(jax.random.split(jax.random.PRNGKey(0), 8))
+    trajs = jax.vmap(lambda k: rollout(k, task, None))(jax.random.split(jax.random.PRNGKey(0), 8))
     valid = np.asarray(trajs.valid)
     assert np.isfinite(np.asarray(trajs.costs)).all() and np.isfinite(np.asarray(trajs.states)).all()
     assert (valid.sum(-1) < task.horizon).all()  # every episode ended early

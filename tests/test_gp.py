@@ -13,7 +13,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg as sla
-import scipy.stats
 
 import pipps  # noqa: F401  (enables x64)
 from pipps.gp import (
@@ -35,6 +34,7 @@ from pipps.gp.fit import _train_full
 from pipps.gp.lbfgs import lbfgs_minimize
 from pipps.gp.linalg import adaptive_cholesky
 from pipps.gp.train import input_log_std
+from pipps.stats import z_bound
 
 # ----------------------------------------------------------------------------- numpy references
 
@@ -214,7 +214,7 @@ def test_training_recovers_known_hyperparameters():
     data = pad_to_capacity(make_data(x, np.stack(ys, 1)), 200)
     hyper, info = jax.jit(fit_hyper)(data, None, GPConfig())
     assert np.all(np.asarray(info.grad_norm) < 1e-3)
-    z_crit = scipy.stats.norm.ppf(1 - 0.001 / (2 * 12))
+    z_crit = z_bound(12, 0.001)
     est, tru = np.asarray(hyper_to_rows(hyper)), np.asarray(hyper_to_rows(truth))
     for a in range(3):
         fisher = _fisher_information(x, np.exp(tru[a, :dz]), np.exp(tru[a, dz]), np.exp(tru[a, dz + 1]))

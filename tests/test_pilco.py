@@ -21,7 +21,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
-import scipy.stats
 from jax.flatten_util import ravel_pytree
 
 import pipps  # noqa: F401  (enables x64)
@@ -44,6 +43,7 @@ from pipps.pilco import (
 from pipps.pilco import controller as controller_module
 from pipps.policies import LinearPolicy, RBFPolicy, init_pilco_rbf_policy, init_rbf_policy
 from pipps.rollout import rollout, training_pairs
+from pipps.stats import cov_z, cross_z, mean_z, z_bound
 from pipps.systems import (
     LinearGaussianModel,
     QuadraticCost,
@@ -53,7 +53,6 @@ from pipps.systems import (
     reference_system,
 )
 from pipps.tasks.presets import make_task
-from mc_stats import cov_z, cross_z, mean_z
 
 N_MC = 1_000_000
 FAMILY_ALPHA = 1e-3
@@ -62,9 +61,6 @@ FD_TOL = 1e-6
 
 
 # -- helpers (as in tests/test_costs.py) ----------------------------------------------------------
-def z_bound(n_comparisons: int) -> float:
-    """Two-sided normal quantile with Bonferroni correction at family level FAMILY_ALPHA."""
-    return float(scipy.stats.norm.isf(FAMILY_ALPHA / (2 * n_comparisons)))
 
 
 def normal_samples(seed, n, dim):
@@ -86,7 +82,7 @@ def moment_z(u, y, g):
 
 
 def assert_mc(z, label):
-    bound = z_bound(z.size)
+    bound = z_bound(z.size, FAMILY_ALPHA)
     print(f"MC {label}: max z = {np.max(z):.2f} over {z.size} entries (bound {bound:.2f})")
     assert np.max(z) < bound, (label, np.max(z), bound)
 
@@ -247,7 +243,7 @@ def test_saturation_monte_carlo_has_power():
     gam = {1: 9 / 8, 3: 1 / 8}
     wrong = sum(gam[k] ** 2 * sin_cov(k, k) for k in (1, 3)) * np.outer(u_max, u_max)
     z = cov_z(u, wrong)
-    assert np.max(z) > z_bound(z.size)
+    assert np.max(z) > z_bound(z.size, FAMILY_ALPHA)
 
 
 def test_saturation_large_variance_is_finite():
@@ -385,7 +381,7 @@ def test_gp_monte_carlo_has_power():
     """Without the model-uncertainty term the same MC check fails."""
     c = gp_case(5, 3, "full")
     z = moment_z(c["w"], c["f"], c["g0"])
-    assert np.max(z) > z_bound(z.size)
+    assert np.max(z) > z_bound(z.size, FAMILY_ALPHA)
 
 
 @pytest.mark.parametrize("kind", ["full", "fitc"])
@@ -483,7 +479,7 @@ def test_propagate_is_step_moments():
 def cartpole_data(preset: str, n_rollouts: int = 3):
     """Task, training data of random rollouts of the true system and the GP trained on it (pipps.gp.fit)."""
     task = make_task("cartpole_swingup", preset=preset)
-    xs, ys = zip(*(training_pairs(task, rollout(task, jax.random.key(i))) for i in range(n_rollouts)))
+    xs, ys = zip(*(training_pairs(task, rollout(jax.random.key(i), task)) for i in range(n_rollouts)))
     data = gp.make_data(np.concatenate(xs), np.concatenate(ys))
     post, _, _ = gp.fit(None, data)
     return task, data, post
@@ -666,8 +662,8 @@ def test_exact_objective_with_noise_against_monte_carlo(cost):
     total = np.asarray(sampled_returns(jax.random.key(60)))
     J = float(exact_objective(task, model, policy))
     zscore = abs(total.mean() - J) / (total.std(ddof=1) / np.sqrt(N_MC))
-    print(f"MC exact_objective {cost}: z = {zscore:.2f} (bound {z_bound(1):.2f})")
-    assert zscore < z_bound(1)
+    print(f"MC exact_objective {cost}: z = {zscore:.2f} (bound {z_bound(1, FAMILY_ALPHA):.2f})")
+    assert zscore < z_bound(1, FAMILY_ALPHA)
     J_latent = float(exact_objective(task, model, policy, noise_scale=0.0))
     assert abs(J - J_latent) > 10 * total.std(ddof=1) / np.sqrt(N_MC)  # the noise is in it, detectably
 
@@ -683,8 +679,8 @@ def test_quadratic_cost_moments_against_monte_carlo():
     n = len(c)
     z_e = abs(c.mean() - float(e)) / (c.std(ddof=1) / np.sqrt(n))
     z_v = abs(c.var(ddof=1) - float(v)) / np.sqrt((np.mean((c - c.mean()) ** 4) - c.var(ddof=1) ** 2) / n)
-    print(f"MC quadratic cost: z(E) = {z_e:.2f}, z(Var) = {z_v:.2f} (bound {z_bound(2):.2f})")
-    assert max(z_e, z_v) < z_bound(2), (z_e, z_v)
+    print(f"MC quadratic cost: z(E) = {z_e:.2f}, z(Var) = {z_v:.2f} (bound {z_bound(2, FAMILY_ALPHA):.2f})")
+    assert max(z_e, z_v) < z_bound(2, FAMILY_ALPHA), (z_e, z_v)
     assert float(cost.expected(jnp.asarray(mean), jnp.zeros((4, 4)))[0]) == pytest.approx(float(cost(jnp.asarray(mean))))
     with pytest.raises(ValueError):
         QuadraticCost(np.array([[1.0, 2.0], [0.0, 1.0]]), np.zeros(2))

@@ -14,7 +14,7 @@ from pipps.tasks.presets import make_task
 
 def test_noise_free_rollout_equals_stepping_the_ode():
     task = make_task("cartpole_swingup", k=0.0)
-    traj = jax.jit(lambda key: rollout(task, key))(jax.random.PRNGKey(0))
+    traj = jax.jit(lambda key: rollout(key, task))(jax.random.PRNGKey(0))
     s = traj.states[0]
     for t in range(task.horizon):
         s = task.step(s, traj.actions[t])
@@ -29,7 +29,7 @@ def test_noise_free_rollout_equals_stepping_the_ode():
 def test_policy_sees_the_noisy_observation_and_training_pairs_are_differences():
     task = make_task("cartpole_swingup", preset="pilco", k=4.0)
     pol = init_rbf_policy(jax.random.PRNGKey(1), 10, np.zeros(5), np.eye(5), task.u_max)
-    traj = rollout(task, jax.random.PRNGKey(2), pol)
+    traj = rollout(jax.random.PRNGKey(2), task, pol)
     x_obs = jax.vmap(task.sim_to_model)(traj.observations)
     expected_u = jax.vmap(lambda x: pol(task.policy_input(x)))(x_obs[:-1])
     np.testing.assert_allclose(np.asarray(traj.actions), np.asarray(expected_u), rtol=1e-13)
@@ -46,7 +46,7 @@ def test_policy_sees_the_noisy_observation_and_training_pairs_are_differences():
 def test_unicycle_fall_stops_the_trajectory():
     task = make_task("unicycle", k=1.0)
     pol = init_linear_policy(jax.random.PRNGKey(3), 10, task.u_max)
-    traj = rollout(task, jax.random.PRNGKey(4), pol)
+    traj = rollout(jax.random.PRNGKey(4), task, pol)
     valid = np.asarray(traj.valid)
     n = int(valid.sum())
     assert 0 < n < task.horizon  # an untrained policy falls within 2 s

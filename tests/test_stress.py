@@ -64,7 +64,7 @@ def all_finite(tree) -> bool:
 def transitions(k: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """GP training pairs of two random 8-step rollouts (observation-noise variance ×k)."""
     task = make_task("cartpole_swingup", horizon=8, k=k)
-    pairs = [training_pairs(task, rollout(task, jax.random.PRNGKey(s))) for s in range(2)]
+    pairs = [training_pairs(task, rollout(jax.random.PRNGKey(s), task)) for s in range(2)]
     return np.concatenate([p[0] for p in pairs]), np.concatenate([p[1] for p in pairs])
 
 

@@ -15,11 +15,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import scipy.stats
 from gymnasium.utils.env_checker import check_env
 from scipy.integrate import solve_ivp
 
 import pipps.tasks as T
+from pipps.stats import z_bound
 from pipps.tasks.cartpole import CartPoleParams, cartpole_energy, cartpole_ode
 from pipps.tasks.integrate import integrate_interval
 from pipps.tasks.presets import make_task
@@ -52,11 +52,6 @@ UC_STEP = np.array(
      -0.09482938717, 0.069429720359, 0.232793692538, 1.087264368583, -0.100436889228, 0.760865890783]
 )  # fmt: skip
 UC_DERIVED = np.array([0.0644852130, 0.0199476139, -0.0984275380, -0.0323030554, -0.1615152772, 0.1546376902])
-
-
-def z_bound(n_comparisons: int) -> float:
-    """Two-sided normal quantile with Bonferroni correction at family level FAMILY_ALPHA."""
-    return float(scipy.stats.norm.isf(FAMILY_ALPHA / (2 * n_comparisons)))
 
 
 def max_err(a, b) -> float:
@@ -200,7 +195,7 @@ def test_unicycle_model_start_distribution_is_the_moments_of_x_of_s0():
     prods = (d[:, :, None] * d[:, None, :])[:, iu[0], iu[1]]  # (n, 55)
     cov_hat, cov_se = prods.mean(0), prods.std(0) / np.sqrt(n)
     mean_se = x0.std(0) / np.sqrt(n)
-    b = z_bound(10 + 55)
+    b = z_bound(10 + 55, FAMILY_ALPHA)
     assert np.all(np.abs(x0.mean(0) - task.model_init_mean) < b * mean_se)
     assert np.all(np.abs(cov_hat - task.model_init_cov[iu]) < b * cov_se)
     # power: the same check rejects the (x, y) variance left unrotated at 0.02², a plausible mistake
@@ -380,7 +375,7 @@ def test_observation_noise_has_the_right_std(env_id, k):
         eps.append(obs - env.unwrapped.state)
     eps = np.asarray(eps)
     n, d = eps.shape
-    b = z_bound(2 * d)
+    b = z_bound(2 * d, FAMILY_ALPHA)
     std_hat = eps.std(axis=0, ddof=1)
     assert np.all(np.abs(eps.mean(0)) < b * std_hat / np.sqrt(n))
     assert np.all(np.abs(std_hat - expected_std) < b * std_hat / np.sqrt(2 * n))
@@ -395,7 +390,7 @@ def test_reset_samples_start_distribution_and_is_seeded():
     o3, _ = env.reset(seed=8)
     assert np.array_equal(o1, o2) and not np.array_equal(o1, o3)
     s0 = np.array([env.reset()[0] for _ in range(2000)])
-    b = z_bound(8)
+    b = z_bound(8, FAMILY_ALPHA)
     assert np.all(np.abs(s0.mean(0) - [0, 0, 0, np.pi]) < b * 0.1 / np.sqrt(2000))
     assert np.all(np.abs(s0.std(0, ddof=1) - 0.1) < b * 0.1 / np.sqrt(2 * 2000))
 

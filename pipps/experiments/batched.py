@@ -108,16 +108,16 @@ class _BatchedPrograms:
         run = make_policy_optimizer(task, rcfg, est, opt)
         store = cfg.store_particles
 
-        self.trial_random = jax.jit(smap(lambda k: rollout(task, k, None)))
+        self.trial_random = jax.jit(smap(lambda k: rollout(k, task, None)))
         balance = balance_settings(cfg)
-        self.evaluate_random = jax.jit(smap(lambda k: evaluate_rollouts(task, k, None, balance)))
-        self.trial = jax.jit(smap(lambda k, p: rollout(task, k, p)))
-        self.evaluate = jax.jit(smap(lambda k, p: evaluate_rollouts(task, k, p, balance)))
+        self.evaluate_random = jax.jit(smap(lambda k: evaluate_rollouts(k, task, None, balance)))
+        self.trial = jax.jit(smap(lambda k, p: rollout(k, task, p)))
+        self.evaluate = jax.jit(smap(lambda k, p: evaluate_rollouts(k, task, p, balance)))
         self.init = jax.jit(smap(lambda k, p, m: init_policy_opt_state(
             k, p, m, task=task, config=rcfg, estimator=est, optimizer=opt)))
         self.run = jax.jit(lambda k, s, m, n: smap(lambda kk, ss, mm: run(kk, ss, mm, num_steps=n))(k, s, m),
                            static_argnames="n")
-        self.predict = jax.jit(smap(lambda k, p, m: predict_particles(task, rcfg, store, k, p, m)))
+        self.predict = jax.jit(smap(lambda k, p, m: predict_particles(k, task, rcfg, store, p, m)))
 
 
 def run_batched(

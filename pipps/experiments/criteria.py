@@ -108,7 +108,7 @@ class Resimulator:
         if key not in self._programs:
             task = make_experiment_task(cfg)
             unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task))[1]
-            run = jax.jit(lambda keys, flat: evaluate_rollouts(task, keys, unravel(flat), balance))
+            run = jax.jit(lambda keys, flat: evaluate_rollouts(keys, task, unravel(flat), balance))
             self._programs[key] = run
         return self._programs[key]
 

@@ -177,14 +177,14 @@ def balance_settings(cfg: ExperimentConfig) -> tuple[int, float, float]:
     return cfg.balance_steps, cfg.balance_angle, cfg.balance_position
 
 
-def evaluate_rollouts(task: Task, keys, policy, balance: tuple[int, float, float] | None = None):
+def evaluate_rollouts(keys, task: Task, policy, balance: tuple[int, float, float] | None = None):
     """(returns, upright, balanced) of one true-system rollout per key with ``policy`` (None: random
     actions); fallen steps are charged cost 1. ``balanced``: the cart-pole's physical criterion
     with ``balance = (steps, angle, position)`` (:mod:`pipps.experiments.criteria`); elsewhere, or
     without ``balance``, the same as ``upright``. Pure."""
     from pipps.experiments.criteria import balanced, is_cartpole
 
-    trajs = jax.vmap(lambda k: rollout(task, k, policy))(keys)
+    trajs = jax.vmap(lambda k: rollout(k, task, policy))(keys)
     fallen_steps = task.horizon - jnp.sum(trajs.valid, axis=-1)
     upright = jnp.all(trajs.valid, axis=-1)
     ok = balanced(trajs.states, *balance) if balance is not None and is_cartpole(task.name) else upright
@@ -197,10 +197,10 @@ class _Programs:
     def __init__(self, cfg: ExperimentConfig, task: Task):
         self.cfg, self.task = cfg, task
         balance = balance_settings(cfg)
-        self.evaluate = jax.jit(lambda keys, policy: evaluate_rollouts(task, keys, policy, balance))
-        self.evaluate_random = jax.jit(lambda keys: evaluate_rollouts(task, keys, None, balance))
-        self.trial = jax.jit(lambda key, policy: rollout(task, key, policy))
-        self.trial_random = jax.jit(lambda key: rollout(task, key, None))
+        self.evaluate = jax.jit(lambda keys, policy: evaluate_rollouts(keys, task, policy, balance))
+        self.evaluate_random = jax.jit(lambda keys: evaluate_rollouts(keys, task, None, balance))
+        self.trial = jax.jit(lambda key, policy: rollout(key, task, policy))
+        self.trial_random = jax.jit(lambda key: rollout(key, task, None))
         self.optimizer = _make_optimizer(cfg, task)
 
 
@@ -210,7 +210,7 @@ def _make_optimizer(cfg: ExperimentConfig, task: Task):
     return build[cfg.method_spec.optimizer](cfg, task)
 
 
-def predict_particles(task: Task, rcfg, store: int, key, policy, model):
+def predict_particles(key, task: Task, rcfg, store: int, policy, model):
     """The stored prediction of a trial: the first ``store`` particles' states (T+1, store, D) and
     the mean predicted cost per step, from one particle rollout of the optimised policy. Pure."""
     from pipps.particles.forward import particle_rollout, sample_noise
@@ -221,7 +221,7 @@ def predict_particles(task: Task, rcfg, store: int, key, policy, model):
 
 
 def _particle_prediction(task: Task, rcfg, store: int):
-    predict = jax.jit(lambda key, policy, model: predict_particles(task, rcfg, store, key, policy, model))
+    predict = jax.jit(lambda key, policy, model: predict_particles(key, task, rcfg, store, policy, model))
 
     def run(key, policy, model):
         xs, cost = predict(key, policy, model)

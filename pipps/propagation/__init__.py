@@ -3,7 +3,7 @@
 from pipps.propagation.config import Estimator, estimator, thesis_estimator
 from pipps.propagation.fixed_seed import optimize_fixed_seed
 from pipps.propagation.estimate import Estimate, EstimatorState, estimate, init_estimator_state
-from pipps.propagation.sweep import StepDiagnostics
+from pipps.propagation.backward import StepDiagnostics
 from pipps.propagation.update import (
     PolicyOptState,
     UpdateInfo,

@@ -2,9 +2,9 @@
 
 ``estimate(key, state, policy, model, task=..., config=..., estimator=...)`` draws the particle
 noise from ``key`` (pass the same key every call for the fixed-seed variants), runs the
-particle rollout and the reverse sweep, and returns an :class:`Estimate` and the next
-:class:`EstimatorState` (blackjax style: ``State`` is what the next call needs, the
-diagnostics are what you log). Every function is pure, so ``jax.jit`` and ``jax.vmap`` over a
+particle rollout and the reverse sweep, and returns the next :class:`EstimatorState` and an
+:class:`Estimate` (blackjax style, ``(state, info)``: the state is what the next call needs, the
+estimate is what you use and log). Every function is pure, so ``jax.jit`` and ``jax.vmap`` over a
 leading axis of seeds (keys, states, policies and models) work.
 """
 
@@ -18,7 +18,7 @@ from jax.flatten_util import ravel_pytree
 
 from pipps.particles.forward import RolloutConfig, particle_rollout, sample_noise
 from pipps.propagation.config import Estimator
-from pipps.propagation.sweep import PreviousIteration, StepDiagnostics, backward_sweep, mean_returns
+from pipps.propagation.backward import PreviousIteration, StepDiagnostics, backward_sweep, mean_returns
 from pipps.tasks.base import Task
 
 
@@ -69,8 +69,8 @@ def estimate(
     task: Task,
     config: RolloutConfig,
     estimator: Estimator,
-) -> tuple[Estimate, EstimatorState]:
-    """Objective, gradient estimate, V[g] and per-step diagnostics; and the next state."""
+) -> tuple[EstimatorState, Estimate]:
+    """The next state; and the objective, gradient estimate, V[g] and per-step diagnostics."""
     if config.resampling == "gaussian" and estimator.likelihood_ratio:
         raise ValueError("Gaussian resampling (GR) is a pathwise method; use it with the 'rp' estimator")
     noise = sample_noise(key, task, config)
@@ -85,4 +85,4 @@ def estimate(
     value = jnp.sum(diag.objective)
     result = Estimate(value, record.objective, grad, grad_var, diag)
     next_state = EstimatorState(diag.mean_return, diag.k_lr_batch, jnp.asarray(True))
-    return result, next_state
+    return next_state, result

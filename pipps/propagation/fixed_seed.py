@@ -36,7 +36,7 @@ def optimize_fixed_seed(
     state = init_estimator_state(key, policy, model, task=task, config=config, estimator=est)
 
     def value_and_grad(p):
-        e, _ = estimate(key, state, p, model, task=task, config=config, estimator=est)
+        _, e = estimate(key, state, p, model, task=task, config=config, estimator=est)
         return e.value, e.grad
 
     return minimize(None, policy, qn_config, value_and_grad=value_and_grad)

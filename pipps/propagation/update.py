@@ -21,7 +21,7 @@ import optax
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import Estimator
 from pipps.propagation.estimate import EstimatorState, estimate, init_estimator_state
-from pipps.propagation.sweep import StepDiagnostics
+from pipps.propagation.backward import StepDiagnostics
 from pipps.tasks.base import Task
 
 
@@ -67,7 +67,7 @@ def policy_update(
     optimizer: optax.GradientTransformationExtraArgs,
 ) -> tuple[PolicyOptState, UpdateInfo]:
     """Estimate the gradient at the current policy and take one optimizer step (pure)."""
-    est, est_state = estimate(
+    est_state, est = estimate(
         key, state.estimator_state, state.policy, model, task=task, config=config, estimator=estimator
     )
     updates, opt_state = optimizer.update(est.grad, state.opt_state, state.policy, grad_variance=est.grad_variance)

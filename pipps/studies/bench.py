@@ -101,7 +101,7 @@ def _timing_program(snap: Snapshot, name: str, P: int):
 
         @jax.jit
         def run(theta):
-            e, _ = estimate(key, state, snap.unravel(theta), model, task=task, config=rcfg, estimator=est)
+            _, e = estimate(key, state, snap.unravel(theta), model, task=task, config=rcfg, estimator=est)
             return e.value, e.grad
 
         return run

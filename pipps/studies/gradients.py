@@ -71,7 +71,7 @@ def _build_estimator_program(snap: Snapshot, name: str, P: int, choices: str):
         policy = snap.unravel(theta)
         k_state, k_est = jax.random.split(key)
         state = init_estimator_state(k_state, policy, model, task=task, config=rcfg, estimator=est)
-        e, _ = estimate(k_est, state, policy, model, task=task, config=rcfg, estimator=est)
+        _, e = estimate(k_est, state, policy, model, task=task, config=rcfg, estimator=est)
         return ravel_pytree(e.grad)[0], e.diagnostics.k_lr
 
     return run

@@ -23,27 +23,23 @@ variance. :func:`finite_time_lyapunov` estimates λ per particle.
   unstable fixed point ``θ = 0 (mod 2π), p = 0``.
 * :func:`kicked_rotor_system` — the fixed ``(task, model, policy)`` instances of the variance
   study: ``"chaotic"`` and ``"smooth"`` (see :data:`SETTINGS`; docs/estimator-variance.md).
-* :func:`replicate_gradients`, :func:`trace_variance`, :func:`log_variance_ratio` — the study's
-  protocol (R independent estimates per estimator on common random numbers) and its statistics,
-  shared by tests/test_estimators_variance.py and benchmarks/estimator_variance.py.
+
+The study's protocol (R independent estimates per estimator on common random numbers) and its
+statistics are in :mod:`pipps.stats` (:func:`~pipps.stats.paired_replicate_gradients`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.flatten_util import ravel_pytree
 from jax.tree_util import register_dataclass
 
 from pipps.costs import SaturatingCost
 from pipps.particles.forward import RolloutConfig, sample_noise
 from pipps.policies import LinearPolicy
-from pipps.propagation.config import Estimator
-from pipps.propagation.estimate import EstimatorState, estimate, init_estimator_state
 from pipps.tasks.base import Task
 
 
@@ -177,7 +173,7 @@ def kicked_rotor_system(setting: str = "chaotic", *, horizon: int | None = None)
     return task, model, policy
 
 
-def finite_time_lyapunov(task: Task, model, policy, key: jax.Array, *, num_particles: int = 256, horizon: int | None = None) -> jax.Array:
+def finite_time_lyapunov(key: jax.Array, task: Task, model, policy, *, num_particles: int = 256, horizon: int | None = None) -> jax.Array:
     """(P,) finite-time maximal Lyapunov exponents (per step) of the closed, noisy loop.
 
     For each particle a tangent vector is pushed through the total Jacobian ``dx_{t+1}/dx_t``
@@ -205,78 +201,3 @@ def finite_time_lyapunov(task: Task, model, policy, key: jax.Array, *, num_parti
         return jnp.mean(logs)
 
     return jax.vmap(one, in_axes=(0, 1))(noise.x0, noise.eps)
-
-
-# -- the variance-study protocol (shared by tests/test_estimators_variance.py and the benchmark) --
-
-
-class Replicates(NamedTuple):
-    """R independent gradient estimates per estimator, on common random numbers."""
-
-    grad: dict  # name -> (R, n_θ) flattened gradient estimates
-    k_lr: dict  # name -> (R, T) the per-step k_LR each estimate used
-
-
-def _state_for(kp, ks, policy, model, task, config, est: Estimator) -> EstimatorState:
-    """An EstimatorState from batches independent of the measured one (estimators.md §3, §4).
-
-    The "previous" baseline comes from an extra rollout (``kp``); TP's "previous" k_LR from one
-    earlier estimate (``ks``), as an optimizer's second iteration would have it.
-    """
-    state = init_estimator_state(kp, policy, model, task=task, config=config, estimator=est)
-    if est.total_propagation and est.k_lr == "previous":
-        _, state = estimate(ks, state, policy, model, task=task, config=config, estimator=est)
-    return state
-
-
-def replicate_gradients(
-    key: jax.Array, task: Task, model, policy, config: RolloutConfig, estimators: dict, num_replicates: int, *, batch_size: int = 25
-) -> Replicates:
-    """``num_replicates`` independent estimates of ∇θJ for each named :class:`Estimator`.
-
-    Replicate ``r`` splits its key into (state key, earlier-batch key, estimate key). Every
-    estimator gets the same three keys, so within a replicate all estimators see the same
-    particles (common random numbers: paired comparisons of their variances are tighter), and
-    across replicates everything is independent. Un-jitted; ``jax.jit`` it with the static
-    arguments closed over. ``batch_size`` replicates run vectorised at a time (memory: BIW is O(P²)).
-    """
-
-    def one(k):
-        kp, ks, ke = jax.random.split(k, 3)
-        grads, ks_lr = {}, {}
-        for name, est in estimators.items():
-            state = _state_for(kp, ks, policy, model, task, config, est)
-            e, _ = estimate(ke, state, policy, model, task=task, config=config, estimator=est)
-            grads[name] = ravel_pytree(e.grad)[0]
-            ks_lr[name] = e.diagnostics.k_lr
-        return grads, ks_lr
-
-    keys = jax.random.split(key, num_replicates)
-    grads, k_lr = jax.lax.map(one, keys, batch_size=batch_size)
-    return Replicates(grads, k_lr)
-
-
-def trace_variance(g) -> float:
-    """trace Cov_r[g_r] (ddof 1) of (R, n) replicate estimates."""
-    g = np.asarray(g)
-    return float(np.sum(np.var(g, axis=0, ddof=1)))
-
-
-def log_variance_ratio(g_a, g_b) -> tuple[float, float]:
-    """``(log(V_a/V_b), its standard error)`` for the trace variances of paired replicates.
-
-    ``V = mean_r d_r`` with ``d_r = ‖g_r − ḡ‖²·R/(R−1)`` is a mean over replicates, so by the delta
-    method ``log V̂_a − log V̂_b ≈ log(V_a/V_b) + mean_r(d_{a,r}/V_a − d_{b,r}/V_b)`` and its
-    standard error is ``sd_r(d_a/V̂_a − d_b/V̂_b)/√R``. This uses the empirical fourth moments and
-    the pairing, so unlike an F-test it assumes neither Gaussian gradients (it is exact in the
-    large-R limit for any distribution with finite fourth moments) nor independent estimators.
-    """
-    a, b = np.asarray(g_a), np.asarray(g_b)
-    R = a.shape[0]
-    if b.shape[0] != R or R < 3:
-        raise ValueError(f"need paired replicates (same R >= 3), got {a.shape} and {b.shape}")
-    d_a = np.sum((a - a.mean(0)) ** 2, axis=1) * R / (R - 1)
-    d_b = np.sum((b - b.mean(0)) ** 2, axis=1) * R / (R - 1)
-    v_a, v_b = d_a.mean(), d_b.mean()
-    influence = d_a / v_a - d_b / v_b
-    return float(np.log(v_a / v_b)), float(np.std(influence, ddof=1) / np.sqrt(R))
