@@ -53,8 +53,9 @@ class LowRankPosterior(NamedTuple):
       basis: per output a (M, R_a) array, the kept eigenvectors of its K (zero on padded rows);
         R_a is the output's rank rounded up to a multiple of ``bucket``.
       coef: per output (R_a,), d_i of the kept directions (0 in columns beyond the output's rank).
-      inv_noise: (E,) 1/σ² (σ² = σ_n² + the posterior's jitter); 0 for FITC (no ‖Pk‖² term).
-      mask: (M,) 1.0 on real rows, 0.0 on padded ones.
+      inv_noise: (E,) 1/σ² (σ² = σ_n² + the posterior's jitter); None for FITC, which has no ‖Pk‖² term
+        (static: a FITC rollout computes none of it).
+      mask: (M,) 1.0 on real rows, 0.0 on padded ones; None for FITC (inducing inputs are never padded).
       bound: (E,) the certified bound on the variance error, in units of σ² (FITC: σ_n²).
     """
 
@@ -152,9 +153,7 @@ def low_rank_fitc_posterior(post: GPPosterior, tol: float, *, jitter=None,
     widths = [int(min(M, max(bucket, -(-r // bucket) * bucket))) for r in ranks]
     basis = tuple(jnp.asarray(v[:, :n]) for v, n in zip(bases, widths))
     coef = tuple(jnp.asarray(c[:n]) for c, n in zip(coefs, widths))
-    ones = jnp.ones(M, dtype=post.beta.dtype)
-    lr = LowRankPosterior(hyper, post.inputs, post.beta, basis, coef, jnp.zeros(E, dtype=post.beta.dtype), ones,
-                          jnp.asarray(bounds))
+    lr = LowRankPosterior(hyper, post.inputs, post.beta, basis, coef, None, None, jnp.asarray(bounds))
     return lr, np.asarray(ranks)
 
 
@@ -168,10 +167,13 @@ def low_rank_model(post: GPPosterior, data: GPData, tol: float, *, sparse: bool,
 
 def low_rank_quad(post: LowRankPosterior, ks: jax.Array):
     """``(kᵀAk (E, P), A k (E, P, M))`` in the low-rank form; ``ks`` (E, P, M) kernel rows."""
-    km = ks * post.mask[None, None, :]
+    km = ks if post.mask is None else ks * post.mask[None, None, :]
     quads, ws = [], []
     for a, (u, d) in enumerate(zip(post.basis, post.coef)):  # one pair of (P, M) x (M, R_a) products per output
         c = km[a] @ u  # U_rᵀ k
-        quads.append(jnp.sum(km[a] * km[a], axis=-1) * post.inv_noise[a] - (c * c) @ d)
-        ws.append(km[a] * post.inv_noise[a] - (c * d[None, :]) @ u.T)
+        quad, w = -(c * c) @ d, -(c * d[None, :]) @ u.T
+        if post.inv_noise is not None:  # full GP: the ‖Pk‖²/σ² term
+            quad, w = quad + jnp.sum(km[a] * km[a], axis=-1) * post.inv_noise[a], w + km[a] * post.inv_noise[a]
+        quads.append(quad)
+        ws.append(w)
     return jnp.stack(quads), jnp.stack(ws)
