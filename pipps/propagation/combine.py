@@ -148,30 +148,36 @@ def _total_propagation(rule, g, messages, k_previous, has_previous) -> Combined:
     return Combined(k, k_batch, (var_rp, var_lr), mix(k, g_lr, g_rp), message)
 
 
-@strategy(traced=("source",))
-class InverseVariance:
-    """Total propagation with the inverse-variance weight (thesis Alg. 5; estimators.md §4)."""
+class _TotalPropagationCombiner:
+    """What the two total-propagation combiners share: two parts, ``k_LR`` from their ``source``,
+    and the combination of :func:`_total_propagation`; each defines its own ``batch_weight``."""
 
-    source: BatchWeight | PreviousWeight | FixedWeight
-
-    name = "inverse_variance"
     num_parts = 2
 
     @property
     def k_lr(self):
         return self.source.k_lr
 
-    def batch_weight(self, var_rp, var_lr, mean_rp, mean_lr, num_particles):
-        del mean_rp, mean_lr, num_particles
-        return inverse_variance_k(var_rp, var_lr)
-
     def combine(self, kinds, g, messages, k_previous, has_previous) -> Combined:
         del kinds
         return _total_propagation(self, g, messages, k_previous, has_previous)
 
 
+@strategy(traced=("source",))
+class InverseVariance(_TotalPropagationCombiner):
+    """Total propagation with the inverse-variance weight (thesis Alg. 5; estimators.md §4)."""
+
+    source: BatchWeight | PreviousWeight | FixedWeight
+
+    name = "inverse_variance"
+
+    def batch_weight(self, var_rp, var_lr, mean_rp, mean_lr, num_particles):
+        del mean_rp, mean_lr, num_particles
+        return inverse_variance_k(var_rp, var_lr)
+
+
 @strategy(traced=("gamma", "z", "source"))
-class Robust:
+class Robust(_TotalPropagationCombiner):
     """Total propagation with the bias-aware weight of Suh et al. (estimators.md §9); γ and z are traced."""
 
     gamma: float
@@ -179,18 +185,9 @@ class Robust:
     source: BatchWeight | PreviousWeight | FixedWeight
 
     name = "robust"
-    num_parts = 2
-
-    @property
-    def k_lr(self):
-        return self.source.k_lr
 
     def batch_weight(self, var_rp, var_lr, mean_rp, mean_lr, num_particles):
         return robust_k(var_rp, var_lr, mean_rp, mean_lr, num_particles, self.gamma, self.z)
-
-    def combine(self, kinds, g, messages, k_previous, has_previous) -> Combined:
-        del kinds
-        return _total_propagation(self, g, messages, k_previous, has_previous)
 
 
 def weight_source(k_lr: str | float = "previous") -> BatchWeight | PreviousWeight | FixedWeight:
