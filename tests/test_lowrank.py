@@ -20,13 +20,19 @@ from pipps.gp.types import GPConfig
 from pipps.particles.models import model_output
 
 
-def _problem(seed, n, dz, e, log_sn):
-    rng = np.random.default_rng(seed)
+def _data_and_hyper(rng, n, dz, e, log_sn):
+    """Random smooth data (padded to multiples of 16) and SE-ARD hyperparameters."""
     x = rng.uniform(-2, 2, (n, dz))
     y = np.sin(x @ rng.normal(size=(dz, e))) + 0.01 * rng.normal(size=(n, e))
     data = pad_to_capacity(make_data(x, y), chunk=16)
     hyper = GPHyper(jnp.asarray(rng.uniform(-1.0, 0.7, (e, dz))), jnp.asarray(rng.uniform(-0.5, 0.5, e)),
                     jnp.full(e, log_sn))
+    return x, data, hyper
+
+
+def _problem(seed, n, dz, e, log_sn):
+    rng = np.random.default_rng(seed)
+    x, data, hyper = _data_and_hyper(rng, n, dz, e, log_sn)
     post, jitter, ok = full_posterior(hyper, data, GPConfig())
     assert bool(np.all(np.asarray(ok)))
     z = jnp.asarray(np.concatenate([x[: n // 2] + 0.1 * rng.normal(size=(n // 2, dz)), rng.uniform(-3, 3, (20, dz))]))
@@ -65,11 +71,7 @@ def test_at_full_rank_the_form_is_the_exact_variance_and_its_jacobian():
 
 def _fitc_problem(seed, n, m, dz, e, log_sn):
     rng = np.random.default_rng(seed)
-    x = rng.uniform(-2, 2, (n, dz))
-    y = np.sin(x @ rng.normal(size=(dz, e))) + 0.01 * rng.normal(size=(n, e))
-    data = pad_to_capacity(make_data(x, y), chunk=16)
-    hyper = GPHyper(jnp.asarray(rng.uniform(-1.0, 0.7, (e, dz))), jnp.asarray(rng.uniform(-0.5, 0.5, e)),
-                    jnp.full(e, log_sn))
+    x, data, hyper = _data_and_hyper(rng, n, dz, e, log_sn)
     xu = x[rng.choice(n, m, replace=False)] + 0.05 * rng.normal(size=(m, dz))
     post, jitter, ok = fitc_posterior(hyper, data, jnp.asarray(xu), GPConfig(fitc_threshold=m, num_inducing=m))
     assert bool(np.all(np.asarray(ok)))
