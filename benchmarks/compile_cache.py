@@ -14,11 +14,13 @@ import jax  # noqa: E402
 
 if len(sys.argv) > 3:
     jax.config.update("jax_compilation_cache_dir", sys.argv[3])
-import pipps  # noqa: E402,F401
+import pipps  # noqa: E402
 from pipps.experiments.methods import particle_method  # noqa: E402
 from pipps.optimizers.normalized import normalized_momentum  # noqa: E402
 from pipps.propagation.update import init_policy_opt_state, make_policy_optimizer  # noqa: E402
 from pipps.studies import load_snapshot  # noqa: E402
+
+pipps.enable_float64()
 
 snap = load_snapshot(sys.argv[1], int(sys.argv[2]))
 cfg = snap.config

@@ -42,11 +42,13 @@ import jax
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-import pipps  # noqa: F401  (float64)
+import pipps
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import estimator, thesis_estimator
 from pipps.stats import replicate_gradients, z_bound
 from pipps.systems import exact_objective, reference_system
+
+pipps.enable_float64()
 
 # name: (estimator, particle counts, what the row shows)
 ESTIMATORS = {

@@ -26,13 +26,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import pipps  # noqa: F401
+import pipps
 from pipps.gp import GPConfig, GPHyper, full_posterior, make_data
 from pipps.particles.forward import RolloutConfig, particle_rollout, reparameterized_objective, sample_noise
 from pipps.policies import init_rbf_policy
 from pipps.propagation.config import estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.tasks.presets import make_task
+
+pipps.enable_float64()
 
 
 def cartpole_model(n: int, seed: int = 0):

@@ -26,11 +26,13 @@ import time
 import jax
 import numpy as np
 
-import pipps  # noqa: F401
+import pipps
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import estimator
 from pipps.stats import log_variance_ratio, paired_replicate_gradients, trace_variance
 from pipps.systems.chaotic import SETTINGS, finite_time_lyapunov, kicked_rotor_system
+
+pipps.enable_float64()
 
 ESTIMATORS = {
     "RP": estimator("rp"),

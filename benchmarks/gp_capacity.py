@@ -22,12 +22,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import pipps  # noqa: F401  (float64)
+import pipps
 from pipps.experiments.methods import particle_method
 from pipps.experiments.results import read_result
 from pipps.optimizers.normalized import normalized_momentum
 from pipps.propagation.update import init_policy_opt_state, make_policy_optimizer
 from pipps.studies import load_snapshot
+
+pipps.enable_float64()
 
 
 def gemm_rate(m: int = 300) -> float:

@@ -15,9 +15,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import pipps  # noqa: F401  (float64)
+import pipps
 from pipps.pilco.propagate import objective
 from pipps.studies import load_snapshot
+
+pipps.enable_float64()
 
 
 def main(path: str, trials: list[int]) -> None:

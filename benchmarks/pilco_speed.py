@@ -29,13 +29,15 @@ import time
 import jax
 import numpy as np
 
-import pipps  # noqa: F401  (x64)
+import pipps
 from pipps import gp
 from pipps.gp.types import GPConfig
 from pipps.pilco import objective
 from pipps.policies import init_rbf_policy
 from pipps.rollout import rollout, training_pairs
 from pipps.tasks.presets import make_task
+
+pipps.enable_float64()
 
 
 def collect(task, n_pairs: int, seed: int = 0):

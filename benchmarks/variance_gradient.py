@@ -17,11 +17,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-import pipps  # noqa: F401  (float64)
+import pipps
 from pipps.experiments.methods import particle_method
 from pipps.gp.lowrank import low_rank_model
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.studies import load_snapshot
+
+pipps.enable_float64()
 
 
 def main():

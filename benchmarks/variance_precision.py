@@ -22,12 +22,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+import pipps
 from pipps.experiments.methods import particle_method
 from pipps.experiments.results import read_result
 from pipps.particles.forward import particle_rollout, sample_noise
 from pipps.particles.models import model_output
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.studies import load_snapshot
+
+pipps.enable_float64()
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

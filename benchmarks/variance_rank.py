@@ -12,6 +12,7 @@ import numpy as np, jax, jax.numpy as jnp
 import pipps
 from pipps.studies import load_snapshot
 from pipps.gp.kernel import se_ard
+pipps.enable_float64()
 for f,t in (("tp_thesis_s1",10),("tp_thesis_s0",7),("pilco_thesis_s2",9)):
     snap = load_snapshot(f"results/thesis/cartpole_swingup_angle_k1_{f}.h5", t)
     post = snap.model; n = snap.num_points

@@ -13,6 +13,7 @@ from pipps.studies import load_snapshot
 from pipps.experiments.methods import particle_method
 from pipps.optimizers.normalized import normalized_momentum
 from pipps.propagation.update import init_policy_opt_state, make_policy_optimizer
+pipps.enable_float64()
 snap = load_snapshot(sys.argv[1], int(sys.argv[2]))
 cfg = snap.config
 def timeit(rcfg, est, steps=20, reps=3):

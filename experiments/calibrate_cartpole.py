@@ -26,10 +26,13 @@ from collections import defaultdict
 
 import numpy as np
 
+import pipps
 from pipps.experiments.calibration import fit_return_threshold
 from pipps.experiments.methods import METHODS
 from pipps.experiments.criteria import Resimulator
 from pipps.experiments.results import read_result
+
+pipps.enable_float64()
 
 
 def main(argv=None) -> None:

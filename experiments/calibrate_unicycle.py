@@ -40,12 +40,14 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
 
-import pipps  # noqa: F401  (float64)
+import pipps
 from pipps.experiments import resolve_config
 from pipps.experiments.calibration import fit_return_threshold
 from pipps.experiments.results import read_result
 from pipps.experiments.loop import _Programs, make_experiment_task
 from pipps.policies import LinearPolicy
+
+pipps.enable_float64()
 
 
 def model_to_sim(x: jax.Array) -> jax.Array:

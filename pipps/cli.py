@@ -9,6 +9,9 @@ gradient error) and ``rollout`` (true-system rollouts with a random policy).
 Errors are one line naming the problem (exit status 2 for bad input); ``--debug`` or
 ``PIPPS_DEBUG=1`` shows the traceback of an unexpected one.
 
+Every command computes in float64: :func:`main` switches on JAX's 64-bit mode before anything
+else runs (:func:`pipps.enable_float64`; importing the library does not).
+
 Compiled programs are kept in JAX's persistent compilation cache (:func:`enable_compilation_cache`),
 so the second experiment of a sweep, and every later command, reuses the first one's programs.
 """
@@ -722,7 +725,10 @@ def enable_compilation_cache() -> str | None:
 def main(argv: list[str] | None = None) -> int:
     import os
 
+    from pipps.precision import enable_float64
+
     args = build_parser().parse_args(argv)
+    enable_float64()
     enable_compilation_cache()
     name = f"pipps {args.command}" + (f" {args.study}" if args.command == "study" else "")
     try:

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pipps.precision import require_float64
 from pipps.tasks.base import Task
 
 
@@ -54,6 +55,7 @@ def rollout(
     costs are 0; the state is frozen so that nothing downstream sees a blown-up value. For a
     task with a fall condition, a non-finite next state counts as a fall as well.
     """
+    require_float64("pipps.rollout.rollout")
     H = task.horizon if horizon is None else int(horizon)
     k0, k_obs, k_act = jax.random.split(key, 3)
     s0 = sample_initial_state(k0, task)

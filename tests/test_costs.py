@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-import pipps  # noqa: F401  (enables x64)
 from pipps.costs import (
     SaturatingCost,
     cartpole_angle_cost,

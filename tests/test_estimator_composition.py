@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
 
-import pipps  # noqa: F401  (float64)
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.combine import inverse_variance, robust, single
 from pipps.propagation.config import ESTIMATORS, NAMED, compose, estimator, thesis_estimator

@@ -7,7 +7,6 @@ import optax
 import pytest
 from jax.flatten_util import ravel_pytree
 
-import pipps  # noqa: F401
 from pipps.optimizers.normalized import normalized_momentum
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import estimator

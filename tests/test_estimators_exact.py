@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
 
-import pipps  # noqa: F401
 from pipps.gp import fit, make_data
 from pipps.particles.forward import RolloutConfig, particle_rollout, reparameterized_objective, sample_noise
 from pipps.policies import init_rbf_policy

@@ -14,7 +14,6 @@ import pytest
 from jax.flatten_util import ravel_pytree
 from jax.tree_util import register_dataclass
 
-import pipps  # noqa: F401
 from pipps.optimizers.normalized import normalized_momentum, normalized_term
 from pipps.particles.forward import RolloutConfig
 from pipps.policies import LinearPolicy

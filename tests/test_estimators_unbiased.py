@@ -40,7 +40,6 @@ import pytest
 from jax.flatten_util import ravel_pytree
 from jax.tree_util import register_dataclass
 
-import pipps  # noqa: F401  (float64)
 from pipps.particles.forward import RolloutConfig, reparameterized_objective, sample_noise
 from pipps.propagation.config import estimator, thesis_estimator
 from pipps.propagation.estimate import estimate, init_estimator_state

@@ -43,7 +43,6 @@ import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
 
-import pipps  # noqa: F401
 from pipps.particles.forward import RolloutConfig, particle_rollout, sample_noise
 from pipps.propagation.config import estimator
 from pipps.propagation.estimate import estimate, init_estimator_state

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-import pipps  # noqa: F401  (enables x64)
 from pipps.gp import (
     FitState,
     GPConfig,

@@ -8,7 +8,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import pipps  # noqa: F401  (enables x64)
 from pipps.gp import (
     GPConfig,
     GPHyper,

@@ -23,7 +23,6 @@ import pytest
 import scipy.linalg
 from jax.flatten_util import ravel_pytree
 
-import pipps  # noqa: F401  (enables x64)
 from pipps import gp
 from pipps.gp.types import GPConfig, GPHyper
 from pipps.optimizers import QuasiNewtonConfig

@@ -6,7 +6,6 @@ from jax.flatten_util import ravel_pytree
 import numpy as np
 import pytest
 
-import pipps  # noqa: F401  (enables x64)
 from pipps.policies import (
     LinearPolicy,
     PilcoRBFPolicy,

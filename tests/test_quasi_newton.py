@@ -12,7 +12,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import pipps  # noqa: F401  (enables x64)
 from pipps.optimizers import (
     STOP_BUDGET,
     STOP_FAILED,

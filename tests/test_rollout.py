@@ -5,7 +5,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import pipps  # noqa: F401
 from pipps.cli import main
 from pipps.policies import init_linear_policy, init_rbf_policy
 from pipps.rollout import rollout, training_pairs

@@ -29,7 +29,6 @@ import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
 
-import pipps  # noqa: F401  (enables x64)
 from pipps.gp import GPConfig, GPNumericsWarning, fit, make_data, predict
 from pipps.optimizers.normalized import normalized_momentum
 from pipps.optimizers.quasi_newton import STOP_GRADIENT, QuasiNewtonConfig

@@ -31,6 +31,8 @@ from pipps.tasks.unicycle import (
     unicycle_sim_to_model,
 )
 
+T.register_envs()
+
 TOL = 1e-9  # tasks.md §7.3: "reproduces §7.3 to about 1e-9"
 FAMILY_ALPHA = 1e-3
 

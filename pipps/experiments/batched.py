@@ -65,6 +65,7 @@ from pipps.experiments.loop import (
 from pipps.experiments.methods import MOMENTUM, particle_method
 from pipps.gp import capacity_for, fit_many, make_data, pad_to_capacity
 from pipps.gp.linalg import map_outputs, stack_trees
+from pipps.precision import require_float64
 from pipps.rollout import rollout, training_pairs
 
 BATCHINGS = ("auto", "vmap", "map")
@@ -136,6 +137,7 @@ def run_batched(
     trials (a sweep groups its seeds so): the batch continues every seed at trial n from the state
     its file holds (last policy, data, GP warm start), as :func:`pipps.experiments.loop.run_experiment`
     resumes one seed. A GPU job cut off after a few minutes thus loses at most the trial in flight."""
+    require_float64("pipps.experiments.batched.run_batched")
     if batching not in BATCHINGS:
         raise ValueError(f"batching must be one of {', '.join(BATCHINGS)}, got {batching!r}")
     check_batchable(cfgs)

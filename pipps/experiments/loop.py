@@ -37,6 +37,7 @@ from pipps.experiments.config import QUICK_CENTRE_HIGH, QUICK_CENTRE_LOW, Experi
 from pipps.experiments.methods import FIXED_SEED, MOMENTUM, PILCO_SEARCH, particle_method, rollout_config
 from pipps.gp import FitState, GPConfig, GPHyper, fit, make_data, pad_to_capacity
 from pipps.policies import init_linear_policy, init_pilco_rbf_policy, init_rbf_policy, init_rbf_policy_uniform
+from pipps.precision import require_float64
 from pipps.rollout import Trajectory, rollout, training_pairs
 from pipps.tasks.base import Task
 from pipps.tasks.presets import make_task
@@ -406,6 +407,7 @@ def run_experiment(
 
     ``resume``: a partial result of this same configuration (its trials 0..n−1); the run continues
     at trial n and returns the whole experiment."""
+    require_float64("pipps.experiments.run_experiment")
     progress = progress or (lambda event: None)
     on_trial = on_trial or (lambda result: None)
     t_start = time.perf_counter()

@@ -11,8 +11,10 @@ each running experiment, and because every experiment is a deterministic functio
 configuration and a resumed one continues from exactly the state it stopped in, a
 killed-and-resumed sweep gives the same results as an uninterrupted one.
 
-Workers are separate processes (``spawn``: JAX does not survive ``fork``). With more than one
-job, each worker pins itself to CPUs of its CPU set that no other worker holds
+Workers are separate processes (``spawn``: JAX does not survive ``fork``) that switch on float64
+(:func:`pipps.enable_float64`) as the ``pipps`` command does; a run in the calling process needs
+the caller to have switched it on (:func:`~pipps.experiments.loop.run_experiment` raises otherwise).
+With more than one job, each worker pins itself to CPUs of its CPU set that no other worker holds
 (:func:`_pin_to_free_cpus`: a lock file per CPU, Linux ``sched_setaffinity``), and XLA sizes its
 CPU thread pool from that affinity, so jobs do not fight over cores. :func:`cpu_layout` decides
 how many workers and how many CPUs each: by default one worker per CPU (two pinned experiments
@@ -88,7 +90,7 @@ def cpu_layout(jobs: int | None, experiments: int, cpus: int) -> tuple[int, int]
 def worker_pool(jobs: int, width: int = 1) -> cf.ProcessPoolExecutor:
     """``jobs`` spawn workers, each pinned to ``width`` CPUs no other pinned pipps process holds."""
     return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                                  initializer=_pin_to_free_cpus, initargs=(width,))
+                                  initializer=_start_worker, initargs=(width,))
 
 
 @dataclasses.dataclass
@@ -373,9 +375,17 @@ def _pin_to_free_cpus(width: int = 1) -> set[int] | None:
     return chosen
 
 
+def _start_worker(width: int = 1) -> None:
+    """A sweep worker's set-up, before JAX runs: pin to ``width`` free CPUs, switch on float64."""
+    from pipps.precision import enable_float64
+
+    _pin_to_free_cpus(width)
+    enable_float64()
+
+
 def _pinned(fn, *args):
-    """Ray task body: pin to a free CPU before ``fn`` (and with it JAX) runs, then call it."""
-    _pin_to_free_cpus(1)
+    """Ray task body: set the worker up (:func:`_start_worker`) before ``fn`` runs, then call it."""
+    _start_worker(1)
     return fn(*args)
 
 

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pipps.gp.types import GPData, GPHyper
+from pipps.precision import require_float64
 
 
 def _as_host(name: str, a) -> np.ndarray:
@@ -34,7 +35,9 @@ def make_data(inputs, targets, mask=None) -> GPData:
 
     Raises:
       ValueError: wrong rank, mismatched lengths, NaN/Inf anywhere, fewer than 2 real rows.
+      Float64Required: JAX's 64-bit mode is off (:func:`pipps.enable_float64`).
     """
+    require_float64("pipps.gp.make_data")
     x = _as_host("inputs", inputs)
     y = _as_host("targets", targets)
     if x.ndim != 2:

@@ -23,6 +23,7 @@ from pipps.gp.linalg import map_outputs, stack_trees
 from pipps.gp.posterior import full_posterior
 from pipps.gp.train import fit_hyper, fit_inducing, initial_hyper
 from pipps.gp.types import FitcFitInfo, FitState, GPConfig, GPData, GPHyper, GPPosterior, HyperFitInfo
+from pipps.precision import require_float64
 
 
 class GPNumericsWarning(RuntimeWarning):
@@ -143,7 +144,9 @@ def fit(
     Raises:
       ValueError: bad data or warm-start state (shapes, NaN/Inf, too few points, missing key).
       FloatingPointError: a posterior Cholesky failed even with the largest jitter.
+      Float64Required: JAX's 64-bit mode is off (:func:`pipps.enable_float64`).
     """
+    require_float64("pipps.gp.fit")
     p = _prepare(key, data, prev, config)
     if p.sparse:
         out = _train_sparse(p.data, p.init, p.xu0, p.iters, config)
@@ -240,6 +243,7 @@ def fit_many(
     LAPACK deadlocks there once XLA runs two threads (seen here with two data sets of 60 points;
     :func:`pipps.gp.linalg.map_outputs`).
     """
+    require_float64("pipps.gp.fit_many")
     if batching == "vmap" and jax.default_backend() == "cpu":
         raise ValueError("fit_many: batching='vmap' on CPU can deadlock (jaxlib's batched LAPACK in loops); "
                          "use 'map' or 'auto'")

@@ -12,6 +12,10 @@
 
 Since only strictly decreasing, finite points are accepted, the returned point is the best
 one seen and is never worse than the start.
+
+:func:`pipps.optimizers.quasi_newton.minimize` has the same safeguards around minimize.m's line
+search; the two stay separate because swapping line searches changes every fitted GP
+(docs/architecture.md, "Two minimisers, on purpose").
 """
 
 from __future__ import annotations

@@ -25,6 +25,9 @@ point decreased the objective, then restarts along steepest descent (BFGS matrix
 L-BFGS memory cleared); two consecutive failed line searches stop the run. Only finite points
 that decrease the objective are ever moved to, so the last good parameters are never lost, and
 the returned parameters are the best point evaluated.
+
+The GP fit uses :func:`pipps.gp.lbfgs.lbfgs_minimize` instead (optax's zoom line search, the same
+safeguards); docs/architecture.md, "Two minimisers, on purpose", says why there are two.
 """
 
 from __future__ import annotations

@@ -32,6 +32,7 @@ from pipps.gaussian import GaussianMap, append_map, trig_augment
 from pipps.gp.types import GPPosterior
 from pipps.pilco.controller import control_moments
 from pipps.pilco.gp_moments import WeightedGP, gp_moments, weighted
+from pipps.precision import require_float64
 from pipps.tasks.base import Task
 
 
@@ -173,6 +174,7 @@ def objective(
       checkpoint: static; recompute each step in the backward pass (``jax.checkpoint``) instead
         of storing its intermediates — H× less memory for about one extra forward pass.
     """
+    require_float64("pipps.pilco.objective")
     _, costs = _scan_steps(task, policy, model, init, horizon, model_uncertainty, checkpoint, False)
     return jnp.sum(costs)
 
@@ -187,6 +189,7 @@ def trajectory(
     model_uncertainty: bool = True,
 ) -> PilcoTrajectory:
     """The predicted ``N(μ_t, Σ_t)`` and ``E[c(x_t)]``, ``Var[c(x_t)]`` for ``t = 0..H``."""
+    require_float64("pipps.pilco.trajectory")
     mean0, cov0 = _start(task, init)
     _, (means, covs, c_mean, c_var) = _scan_steps(
         task, policy, model, (mean0, cov0), horizon, model_uncertainty, False, True

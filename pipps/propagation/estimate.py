@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
 from pipps.particles.forward import RolloutConfig, particle_rollout, sample_noise
+from pipps.precision import require_float64
 from pipps.propagation.config import Estimator
 from pipps.propagation.backward import PreviousIteration, StepDiagnostics, backward_sweep, mean_returns
 from pipps.tasks.base import Task
@@ -51,6 +52,7 @@ def init_estimator_state(
     estimators.md §3: for the first iteration the baseline comes from one extra independent
     rollout made when the optimizer starts. ``key`` must be independent of the estimate keys.
     """
+    require_float64("pipps.propagation.init_estimator_state")
     T = config.steps(task)
     if estimator.needs_previous_baseline:
         record = particle_rollout(task, policy, model, sample_noise(key, task, config), config, jacobian=False)
@@ -71,6 +73,7 @@ def estimate(
     estimator: Estimator,
 ) -> tuple[EstimatorState, Estimate]:
     """The next state; and the objective, gradient estimate, V[g] and per-step diagnostics."""
+    require_float64("pipps.propagation.estimate")
     if config.resampling == "gaussian" and estimator.likelihood_ratio:
         raise ValueError("Gaussian resampling (GR) is a pathwise method; use it with the 'rp' estimator")
     noise = sample_noise(key, task, config)

@@ -66,14 +66,6 @@ class LinearGaussianModel:
         return linear_map(mean_z, cov_z, self.F, self.f0)
 
 
-def _no_true_system(s, u):
-    del s, u
-    raise NotImplementedError(
-        "the linear-Gaussian reference task has no true-system ODE: its dynamics are the "
-        "LinearGaussianModel itself (use the model, pipps.pilco or exact_objective, not task.step/rollout)"
-    )
-
-
 def _frozen(a, shape, name) -> np.ndarray:
     arr = np.array(a, dtype=np.float64)
     if arr.shape != shape:
@@ -111,7 +103,8 @@ def make_linear_gaussian_task(
       target: (D,) z (default 0).
       u_max: (F,) control limit, only used by saturated policies (default 10).
 
-    The task's ``ode`` raises :class:`NotImplementedError`: there is no true system to simulate.
+    The task has no ``ode`` (None): there is no true system to simulate, and ``task.step`` raises
+    :class:`NotImplementedError`.
     """
     D, F = int(state_dim), int(action_dim)
     if D < 1 or F < 1 or int(horizon) < 1:
@@ -153,7 +146,7 @@ def make_linear_gaussian_task(
         angle_idx=(),
         gp_input_idx=tuple(range(D)),
         policy_input_idx=tuple(range(D)),
-        ode=_no_true_system,
+        ode=None,
         sim_to_model=lambda s: s,
         fallen=None,
         cost=cost_obj,

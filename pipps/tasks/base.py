@@ -11,6 +11,10 @@ representations of the state (tasks.md §0):
 * the control ``u = u_max ⊙ sat(ũ)``.
 
 All index sets here are 0-based (tasks.md writes them 1-based).
+
+A planning problem without a true system (the reference systems of :mod:`pipps.systems`, whose
+dynamics are their model) has ``ode=None``; its :meth:`Task.step` raises. docs/architecture.md
+says what separating the simulator from the planning problem would take.
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ class Task:
     angle_idx: tuple[int, ...]  # model-state components augmented with (sin, cos)
     gp_input_idx: tuple[int, ...]  # indices into x̃ fed to the GP (the control is appended)
     policy_input_idx: tuple[int, ...]  # indices into x̃ fed to the policy
-    ode: Callable[[jax.Array, jax.Array], jax.Array]  # ṡ = ode(s, u)
+    ode: Callable[[jax.Array, jax.Array], jax.Array] | None  # ṡ = ode(s, u); None: no true system
     sim_to_model: Callable[[jax.Array], jax.Array]  # x = sim_to_model(s)
     fallen: Callable[[jax.Array], jax.Array] | None  # True where s violates the constraint
     cost: Cost
@@ -94,7 +98,17 @@ class Task:
 
     # -- true system --------------------------------------------------------------------
     def step(self, s: jax.Array, u: jax.Array) -> jax.Array:
-        """One control interval of the true system: integrate ṡ = ode(s, u) over dt, u held."""
+        """One control interval of the true system: integrate ṡ = ode(s, u) over dt, u held.
+
+        Raises:
+          NotImplementedError: the task is a planning problem only (``ode`` is None).
+        """
         from pipps.tasks.integrate import integrate_interval
+
+        if self.ode is None:
+            raise NotImplementedError(
+                f"task {self.name!r} has no true-system ODE: it is a planning problem whose dynamics are its "
+                "model; use the model (particles, pipps.pilco, an exact objective), not Task.step or rollout"
+            )
 
         return integrate_interval(self.ode, s, u, self.dt, self.substeps)

@@ -20,6 +20,14 @@ the env still returns that transition, with ``terminated=True`` and
 collects GP training data must drop the transition flagged ``fallen`` (its observation,
 reward and cost are reported for inspection only). Stepping after ``terminated`` or
 ``truncated`` raises ``gymnasium.error.ResetNeeded``, as does stepping before ``reset``.
+
+**Registration.** Importing this module registers :data:`ENV_IDS` with gymnasium; nothing in the
+library imports it. It is the module gymnasium imports for an id that names it,
+``gymnasium.make("pipps.tasks.envs:pipps/CartPoleSwingUp-v0")``, and the one
+:func:`pipps.tasks.register_envs` loads. (Gymnasium 1.x reads no package entry points for
+environments, so nothing registers at ``import gymnasium``.) Like the rest of the true system, an
+env computes in float64: it raises :class:`~pipps.precision.Float64Required` unless
+:func:`pipps.enable_float64` was called.
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from gymnasium import spaces
 
+from pipps.precision import require_float64
 from pipps.tasks.base import Task
 from pipps.tasks.presets import make_task
 
@@ -83,6 +92,7 @@ class PippsEnv(gymnasium.Env):
         render_mode: str | None = None,
         **overrides: Any,
     ):
+        require_float64("PippsEnv")
         if render_mode is not None:
             raise ValueError(f"render_mode {render_mode!r} is not supported; valid choices: None")
         if isinstance(task, str):
@@ -169,7 +179,10 @@ class PippsEnv(gymnasium.Env):
 
 
 def register_envs() -> None:
-    """Register the ``ENV_IDS`` with gymnasium (idempotent; done on ``import pipps.tasks``)."""
+    """Register the ``ENV_IDS`` with gymnasium (idempotent)."""
     for env_id, task_name in ENV_IDS.items():
         if env_id not in gymnasium.registry:
             gymnasium.register(id=env_id, entry_point="pipps.tasks.envs:PippsEnv", kwargs={"task": task_name})
+
+
+register_envs()
