@@ -1,0 +1,71 @@
+"""Is a refactor free? Compare the compiled TP policy-gradient program of two code versions.
+
+Lowers one thesis TP estimate (``tp`` with ``k_lr="batch"``, 300 particles) on the model and policy of
+a stored trial, compiles it, and writes the optimised HLO's instructions with the metadata that
+names source files and lines removed (``stack_frame_id``, ``metadata``) and the instruction numbers
+normalised. Two code versions that produce the same file run the same machine program, so neither
+is slower; the printed objective and first gradient entry show the numbers too. It runs on code
+before and after issue 19's change of ``estimate``'s return order.
+
+    PYTHONPATH=OLD_TREE python benchmarks/program_identity.py FILE.h5 TRIAL old.txt
+    PYTHONPATH=NEW_TREE python benchmarks/program_identity.py FILE.h5 TRIAL new.txt
+    cmp old.txt new.txt
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import re
+import sys
+
+import jax
+import jax.numpy as jnp
+
+import pipps
+from pipps.particles.forward import RolloutConfig
+from pipps.propagation.config import estimator
+from pipps.propagation.estimate import EstimatorState, estimate
+from pipps.studies import load_snapshot
+
+if hasattr(pipps, "enable_float64"):  # after issue 19 item 4; before it, importing pipps enabled it
+    pipps.enable_float64()
+
+
+def instructions(hlo: str) -> str:
+    """The HLO's instruction lines, source metadata removed and instruction numbers normalised."""
+    lines = [ln for ln in hlo.splitlines() if " = " in ln]
+    out = []
+    for ln in lines:
+        ln = re.sub(r", metadata=\{[^}]*\}", "", ln)
+        ln = re.sub(r", stack_frame_id=[0-9]+", "", ln)
+        out.append(re.sub(r"\.[0-9]+", ".N", ln))
+    return "\n".join(out) + "\n"
+
+
+def main(path: str, trial: int, out: str) -> None:
+    snap = load_snapshot(path, trial, gp_chunk=1)
+    T = snap.task.horizon
+    est = estimator("tp", k_lr="batch")
+    config = RolloutConfig(num_particles=300)
+    state = EstimatorState(jnp.zeros(T), jnp.full((T,), 0.5), jnp.asarray(False))
+    state_first = "tuple[EstimatorState, Estimate]" in inspect.getsource(estimate)
+
+    def value_and_grad(key, policy):
+        pair = estimate(key, state, policy, snap.model, task=snap.task, config=config, estimator=est)
+        e = pair[1] if state_first else pair[0]
+        return e.value, e.grad
+
+    program = jax.jit(value_and_grad)
+    key = jax.random.key(0)
+    text = instructions(program.lower(key, snap.policy).compile().as_text())
+    with open(out, "w") as fh:
+        fh.write(text)
+    value, grad = program(key, snap.policy)
+    first = float(jax.tree_util.tree_leaves(grad)[0].ravel()[0])
+    print(f"{out}: {text.count(chr(10))} instructions, sha256 {hashlib.sha256(text.encode()).hexdigest()[:16]}; "
+          f"objective {float(value)!r}, first gradient entry {first!r}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], int(sys.argv[2]), sys.argv[3])
