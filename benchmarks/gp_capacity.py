@@ -71,11 +71,11 @@ def mm_seconds(snap, reps: int = 5) -> float:
 def main(path: str) -> None:
     result = read_result(path)
     cfg = result.config
-    full = [t.index for t in result.trials if t.kind == "learned" and not bool(t.gp_info.get("sparse", False))]
+    full = [t.index for t in result.trials if t.kind == "learned" and not t.gp.sparse]
     print(f"{path}: {cfg.method}, GEMM {gemm_rate():.1f} Gflop/s (float64, 1200x300x300)")
     total = {100: 0.0, 1: 0.0}
     for i in full:
-        evals = cfg.policy_evals if not cfg.is_pilco else int(result.trials[i].opt_trace["evaluations"][-1])
+        evals = cfg.policy_evals if not cfg.is_pilco else int(result.trials[i].opt_trace.evaluations[-1])
         row = []
         for chunk in (100, 1):
             snap = load_snapshot(path, i, gp_chunk=chunk)

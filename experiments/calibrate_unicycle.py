@@ -44,7 +44,7 @@ import pipps
 from pipps.experiments import resolve_config
 from pipps.experiments.calibration import fit_return_threshold
 from pipps.experiments.results import read_result
-from pipps.experiments.loop import _Programs, make_experiment_task
+from pipps.experiments.loop import Programs, make_experiment_task
 from pipps.policies import LinearPolicy
 
 pipps.enable_float64()
@@ -95,7 +95,7 @@ def main(argv=None):
     K = -1.5 * np.asarray(task.u_max)[:, None] * W
     print(f"LQR (linearised true system): closed-loop spectral radius {max(abs(np.linalg.eigvals(A - B @ K))):.3f}, "
           f"open loop {max(abs(np.linalg.eigvals(A))):.3f}")
-    programs = _Programs(cfg, task)
+    programs = Programs(cfg, task)
     rng = np.random.default_rng(args.seed)
     rows = []
     gains = [0.0, 0.1, 0.25, 0.5, 0.75, 1.0, 1.5]

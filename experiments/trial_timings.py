@@ -15,9 +15,9 @@ def main(paths) -> None:
         result = read_result(path, verify=False)
         print(f"{path}: wall {result.wall_seconds / 60:.1f} min")
         for t in result.trials:
-            gp = t.gp_info or {}
-            print(f"  trial {t.index:03d} {t.kind:>7}: {t.timings['total']:7.0f} s  "
-                  f"N = {gp.get('num_points', '-')}  FITC = {gp.get('sparse', '-')}")
+            gp = t.gp
+            print(f"  trial {t.index:03d} {t.kind:>7}: {t.timings.total:7.0f} s  "
+                  f"N = {gp.num_points if gp else '-'}  FITC = {gp.sparse if gp else '-'}")
 
 
 if __name__ == "__main__":

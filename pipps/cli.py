@@ -601,10 +601,9 @@ def _table_figure(figure, paths, args):
 
 def _default_trial(path) -> int:
     from pipps.experiments.results import read_result
+    from pipps.experiments.state import rebuildable_trials
 
-    r = read_result(path)
-    ok = [t.index for t in r.trials
-          if t.kind == "learned" and (not (t.gp_info or {}).get("sparse", False) or "inducing" in t.gp_info)]
+    ok = rebuildable_trials(read_result(path))
     if not ok:
         raise ValueError(f"{path} has no learned trial whose model can be rebuilt")
     return ok[-1]

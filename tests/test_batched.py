@@ -42,13 +42,13 @@ def assert_close_results(a, b, rtol=1e-7, atol=1e-9):
             np.testing.assert_allclose(getattr(ta, name), getattr(tb, name), rtol=rtol, atol=atol,
                                        err_msg=f"trial {ta.index}: {name}")
         if ta.kind == "learned":
-            np.testing.assert_allclose(ta.gp_hyper["log_noise"], tb.gp_hyper["log_noise"], rtol=rtol, atol=atol)
-            np.testing.assert_allclose(ta.opt_trace["value"], tb.opt_trace["value"], rtol=rtol, atol=atol)
-            assert ta.gp_info["sparse"] == tb.gp_info["sparse"]
-            if ta.gp_info["sparse"]:  # L-BFGS on the FITC objective amplifies reassociation: measured
+            np.testing.assert_allclose(ta.gp.log_noise, tb.gp.log_noise, rtol=rtol, atol=atol)
+            np.testing.assert_allclose(ta.opt_trace.value, tb.opt_trace.value, rtol=rtol, atol=atol)
+            assert ta.gp.sparse == tb.gp.sparse
+            if ta.gp.sparse:  # L-BFGS on the FITC objective amplifies reassociation: measured
                 # 1.2e-7 absolute (5.7e-7 relative) between vmapped and separate runs, while the
                 # trajectories and policies that follow agree to 1e-7 relative
-                np.testing.assert_allclose(ta.gp_info["inducing"], tb.gp_info["inducing"], rtol=1e-5, atol=1e-6)
+                np.testing.assert_allclose(ta.gp.inducing, tb.gp.inducing, rtol=1e-5, atol=1e-6)
 
 
 @pytest.mark.slow
@@ -56,10 +56,10 @@ def test_batched_seeds_equal_separate_runs(unbatched):
     """The CPU default (seeds mapped inside one program per phase), with its own checks; the
     sweep test below covers the same path in the default run."""
     batched = run_batched([small(s) for s in SEEDS], batching="map")
-    assert [bool(t.gp_info["sparse"]) for t in batched[0].trials[1:]] == [False, True]
+    assert [t.gp.sparse for t in batched[0].trials[1:]] == [False, True]
     for a, b in zip(unbatched, batched):
         assert_close_results(a, b)
-        assert all(t.timings["batched_seeds"] == len(SEEDS) for t in b.trials)
+        assert all(t.timings.batched_seeds == len(SEEDS) for t in b.trials)
     # the seeds really differ: equality above is not two copies of one run
     assert not np.allclose(batched[0].trials[-1].policy, batched[1].trials[-1].policy)
 

@@ -232,13 +232,13 @@ def test_exact_gp_capacities_change_only_the_rounding(tiny_result):
     L-BFGS and a few policy steps amplify (the batched path's bound, tests/test_batched.py)."""
     padded, _ = tiny_result
     exact = run_experiment(tiny(gp_chunk=1))
-    assert [t.gp_info["capacity"] for t in exact.trials[1:]] == [30]
-    assert [t.gp_info["capacity"] for t in padded.trials[1:]] == [100]
+    assert [t.gp.capacity for t in exact.trials[1:]] == [30]
+    assert [t.gp.capacity for t in padded.trials[1:]] == [100]
     for ta, tb in zip(padded.trials, exact.trials):
         for name in ("states", "actions", "eval_returns", "policy"):
             np.testing.assert_allclose(getattr(ta, name), getattr(tb, name), rtol=1e-7, atol=1e-9, err_msg=name)
     for name in ("log_lengthscale", "log_signal", "log_noise"):
-        np.testing.assert_allclose(padded.trials[1].gp_hyper[name], exact.trials[1].gp_hyper[name], rtol=1e-7)
+        np.testing.assert_allclose(getattr(padded.trials[1].gp, name), getattr(exact.trials[1].gp, name), rtol=1e-7)
 
 
 def test_results_are_deterministic_in_the_config(tiny_result):
@@ -296,13 +296,13 @@ def test_a_failure_part_way_keeps_the_finished_trials(tmp_path):
 
 def test_unicycle_evaluation_charges_fallen_steps():
     """Evaluation return = summed cost of the valid steps + 1 per step after a fall; upright = never fell."""
-    from pipps.experiments.loop import _Programs, make_experiment_task
+    from pipps.experiments.loop import Programs, make_experiment_task
     from pipps.rollout import rollout
 
     cfg = tiny(task="unicycle")
     task = make_experiment_task(cfg)
     keys = jax.random.split(jax.random.PRNGKey(3), 4)
-    returns, upright, _ = _Programs(cfg, task).evaluate_random(keys)
+    returns, upright, _ = Programs(cfg, task).evaluate_random(keys)
     for key, ret, up in zip(keys, np.asarray(returns), np.asarray(upright)):
         traj = rollout(key, task, None)
         valid = np.asarray(traj.valid)
@@ -391,7 +391,7 @@ def fitc_run(tmp_path_factory):
     """A tiny run whose GP turns FITC at trial 2 (60 points > 40): warm starts of both kinds."""
     path = tmp_path_factory.mktemp("fitc") / "whole.h5"
     result = run_experiment(tiny(**RESUME), on_trial=lambda r: write_result(path, r))
-    assert [bool(t.gp_info["sparse"]) for t in result.trials[1:]] == [False, True, True]
+    assert [t.gp.sparse for t in result.trials[1:]] == [False, True, True]
     return result, path
 
 
@@ -409,8 +409,8 @@ def test_a_resumed_experiment_equals_an_uninterrupted_one(fitc_run, tmp_path, at
     assert_same_results(whole, resumed)
     for a, b in zip(whole.trials[at:], resumed.trials[at:]):
         for name in ("log_lengthscale", "log_signal", "log_noise"):
-            np.testing.assert_array_equal(a.gp_hyper[name], b.gp_hyper[name])
-        np.testing.assert_array_equal(a.gp_info["inducing"], b.gp_info["inducing"])
+            np.testing.assert_array_equal(getattr(a.gp, name), getattr(b.gp, name))
+        np.testing.assert_array_equal(a.gp.inducing, b.gp.inducing)
 
 
 def test_resume_refuses_another_configuration(fitc_run):

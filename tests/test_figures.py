@@ -18,7 +18,8 @@ import pytest
 from pipps import charts as ch
 from pipps.cli import main
 from pipps.experiments.config import resolve_config
-from pipps.experiments.loop import ExperimentResult, TrialResult
+from pipps.experiments.records import (Diagnostics, ExperimentResult, MomentPrediction, ParticlePrediction, Timings,
+                                       TrialResult)
 from pipps.experiments.tables import TABLES, cell_summaries, collect, wilson_interval
 from pipps.studies.bench import BenchEntry, BenchResult
 from pipps.studies.gradients import LandscapeResult, Samples, VarianceResult, interval
@@ -286,20 +287,20 @@ def _trial(index, T=30, S=4, predicted=None, diagnostics=None):
     states = np.zeros((T + 1, S))
     states[:, 3] = t
     return TrialResult(index, "learned", states, states, np.zeros((T, 1)), np.ones(T), np.ones(T, bool), np.array([10.0]),
-                       np.array([True]), np.zeros(3), {}, predicted=predicted, diagnostics=diagnostics)
+                       np.array([True]), np.zeros(3), Timings(), predicted=predicted, diagnostics=diagnostics)
 
 
 def test_diagnostics_figure_has_time_and_angle_axes_and_per_step_panels(tmp_path):
     from pipps.experiments.figures import diagnostics_figure, record_diagnostics
 
     particles = np.repeat(np.linspace(0, 3.0, 31)[:, None, None], 4, axis=1) * np.ones((1, 1, 4))
-    diag = {"k_lr": np.linspace(1, 0, 30), "var_rp": np.logspace(3, -1, 30), "var_lr": np.logspace(3, 1, 30)}
+    diag = Diagnostics(np.linspace(1, 0, 30), np.logspace(3, -1, 30), np.logspace(3, 1, 30), np.zeros(6), np.zeros(30))
     tp = ExperimentResult(resolve_config("thesis", "cartpole_swingup", method="tp"),
-                          [_trial(1, predicted={"particles": particles}, diagnostics=diag)])
+                          [_trial(1, predicted=ParticlePrediction(particles, np.zeros(30)), diagnostics=diag)])
     mean = np.zeros((31, 4))
     mean[:, 3] = np.linspace(0, 3.1, 31)
     pilco = ExperimentResult(resolve_config("thesis", "cartpole_swingup", method="pilco"),
-                             [_trial(1, predicted={"mean": mean, "cov": np.tile(0.01 * np.eye(4), (31, 1, 1))})])
+                             [_trial(1, predicted=MomentPrediction(mean, np.tile(0.01 * np.eye(4), (31, 1, 1)), np.zeros(31)))])
     groups = [("tp", tp), ("pilco", pilco)]
     rec, bp, timed = read_rrd(record_diagnostics(groups, tmp_path / "d.rrd"))
     fig = diagnostics_figure(groups)
@@ -319,10 +320,10 @@ def test_diagnostics_figure_has_time_and_angle_axes_and_per_step_panels(tmp_path
 def test_overview_keeps_its_timeline_and_moves_the_legends_to_free_corners(tmp_path):
     from pipps.experiments.plot import record
 
-    diag = {"k_lr": np.linspace(1, 0, 30), "var_rp": np.logspace(3, -1, 30), "var_lr": np.logspace(3, 1, 30)}
+    diag = Diagnostics(np.linspace(1, 0, 30), np.logspace(3, -1, 30), np.logspace(3, 1, 30), np.zeros(6), np.zeros(30))
     particles = np.zeros((31, 4, 4))
     r = ExperimentResult(resolve_config("thesis", "cartpole_swingup", method="tp"),
-                         [_trial(0), _trial(1, predicted={"particles": particles}, diagnostics=diag)])
+                         [_trial(0), _trial(1, predicted=ParticlePrediction(particles, np.zeros(30)), diagnostics=diag)])
     rec, bp, timed = read_rrd(record([r], tmp_path / "o.rrd"))
     assert timed  # explorable over the trial/step timeline, as before
     corners = sorted(v["corner"][0] for k, v in bp.items() if k.endswith("PlotLegend") and "corner" in v)

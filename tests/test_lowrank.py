@@ -145,7 +145,7 @@ def test_an_experiment_runs_on_the_low_rank_variance_and_records_its_ranks():
     cfg = resolve_config("quick", "cartpole_swingup", num_learned=1, num_particles=8, policy_evals=6,
                          eval_rollouts=3, gp_max_iters=10, progress_chunk=3, store_particles=4, variance_tol=1e-3)
     r = run_experiment(cfg)
-    info = r.trials[1].gp_info
-    assert r.status == "complete" and len(info["variance_ranks"]) == 4
-    assert np.all(np.asarray(info["variance_bound"]) <= 1e-3)
+    gp = r.trials[1].gp
+    assert r.status == "complete" and len(gp.variance_ranks) == 4
+    assert np.all(np.asarray(gp.variance_bound) <= 1e-3)
     assert jax.numpy.isfinite(r.trials[1].policy).all()

@@ -31,7 +31,16 @@ from pipps.experiments.config import (
     resolve_config,
     same_experiment,
 )
-from pipps.experiments.loop import ExperimentResult, TrialResult
+from pipps.experiments.records import (
+    ExperimentResult,
+    GPRecord,
+    MomentPrediction,
+    ParticlePrediction,
+    SearchTrace,
+    StepTrace,
+    Timings,
+    TrialResult,
+)
 from pipps.experiments.results import read_result, read_summary, verify_result, write_result
 from pipps.experiments.storage import (
     MANIFEST,
@@ -53,11 +62,9 @@ def fake_trial(cfg, i):
         i, "random" if i < cfg.num_random else "learned", states=rng.normal(size=(4, 4)),
         observations=rng.normal(size=(4, 4)), actions=rng.normal(size=(3, 1)), costs=rng.uniform(size=3),
         valid=np.ones(3, bool), eval_returns=rng.uniform(0, 30, size=3), eval_upright=np.ones(3, bool),
-        policy=rng.normal(size=5), timings={"total": 0.0}, eval_balanced=rng.uniform(size=3) < 0.5,
-        gp_hyper=None if i < cfg.num_random else {"log_lengthscale": np.zeros((4, 5)), "log_signal": np.zeros(4),
-                                                   "log_noise": np.zeros(4)},
-        gp_info=None if i < cfg.num_random else {"sparse": False, "num_points": 10 * i, "objective": np.zeros(4),
-                                                  "messages": ""})
+        policy=rng.normal(size=5), timings=Timings(total=0.0), eval_balanced=rng.uniform(size=3) < 0.5,
+        gp=None if i < cfg.num_random else GPRecord(np.zeros((4, 5)), np.zeros(4), np.zeros(4), sparse=False,
+                                                     num_points=10 * i, objective=np.zeros(4), messages=""))
 
 
 def fake_run_experiment(cfg, *, progress=None, on_trial=None, resume=None, stop_after=None):
@@ -342,6 +349,92 @@ def test_scalars_stay_attributes_through_a_resume(fake_loop, tmp_path):
         for name in ("001", "002", "003", "005"):
             gp = f["trials"][name]["gp"]
             assert "num_points" in gp.attrs and "num_points" not in gp and "sparse" in gp.attrs, name
+
+
+def test_older_layouts_read_into_typed_records_and_are_written_back_as_fresh_ones(tmp_path):
+    """Files resumed by older versions stored some scalars as datasets (gp/num_points) or attributes
+    (opt_trace/stop_reason), and a file from another version may hold entries no record knows: all
+    read, the known ones into their typed fields, and a rewrite stores the fresh layout and keeps the
+    unknown entries as they were."""
+    cfg = resolve_config("quick", "cartpole_swingup")
+    path = tmp_path / "r.h5"
+    result = fake_run_experiment(cfg)
+    result.trials[1].opt_trace = SearchTrace(np.arange(3.0), np.array([4, 5, 6]), np.zeros(3, bool), np.asarray(2))
+    write_result(path, result)
+    with h5py.File(path, "r+") as f:
+        gp, trace, timings = f["trials/001/gp"], f["trials/001/opt_trace"], f["trials/001/timings"]
+        n = int(gp.attrs["num_points"])
+        del gp.attrs["num_points"]
+        gp.create_dataset("num_points", data=np.int64(n))
+        del trace["stop_reason"]
+        trace.attrs["stop_reason"] = np.int64(2)
+        gp.create_dataset("from_the_future", data=np.arange(4))
+        timings.attrs["warmup"] = 0.5
+    back = read_result(path)
+    t = back.trials[1]
+    assert isinstance(t.gp, GPRecord) and t.gp.num_points == n and type(t.gp.num_points) is int
+    assert isinstance(t.opt_trace, SearchTrace) and int(t.opt_trace.stop_reason) == 2
+    np.testing.assert_array_equal(t.gp.extra["from_the_future"], np.arange(4))
+    assert t.timings.extra == {"warmup": 0.5} and t.timings.total == 0.0
+    again = tmp_path / "again.h5"
+    write_result(again, back)
+    with h5py.File(again) as f:
+        gp, trace = f["trials/001/gp"], f["trials/001/opt_trace"]
+        assert "num_points" in gp.attrs and "num_points" not in gp
+        assert "stop_reason" in trace and "stop_reason" not in trace.attrs
+        np.testing.assert_array_equal(gp["from_the_future"][()], np.arange(4))
+        assert f["trials/001/timings"].attrs["warmup"] == 0.5
+
+
+def _trial_entries(path) -> dict:
+    """Every entry under /trials, attributes and datasets in one namespace per group (so a scalar an
+    older version stored as the other kind compares equal)."""
+    out = {}
+
+    def visit(name, obj):
+        for k, v in obj.attrs.items():
+            out[f"{name}/{k}"] = v
+        if isinstance(obj, h5py.Dataset):
+            out[name] = obj[()]
+
+    with h5py.File(path, "r") as f:
+        f["trials"].visititems(visit)
+    return out
+
+
+def test_committed_results_restore_the_loops_state_and_write_back_unchanged(tmp_path):
+    """Old files still read (issue 19): every committed result reads into typed records, and restore()
+    rebuilds the loop's state after its trials: the last trial's policy and GP, and data of one
+    training pair per valid transition, the count each learned trial's GP records it was trained on
+    (so the data restore rebuilds at a trial is the data that trial used). Written back by this
+    writer, every trial entry is what the file holds."""
+    from jax.flatten_util import ravel_pytree
+
+    from pipps.experiments.state import make_experiment_task, rebuildable_trials, restore
+
+    files = sorted((REPO / "results/thesis").glob("*.h5"))
+    assert files
+    for p in files:
+        r = read_result(p)
+        transitions = np.cumsum([0] + [int(t.valid.sum()) for t in r.trials])  # before each trial, and after all
+        for t in r.trials:
+            assert isinstance(t.timings, Timings) and t.timings.total > 0, p.name
+            if t.kind == "learned":
+                assert t.gp.num_points == transitions[t.index], (p.name, t.index)
+                assert isinstance(t.opt_trace, SearchTrace if r.config.is_pilco else StepTrace), (p.name, t.index)
+                assert isinstance(t.predicted, MomentPrediction if r.config.is_pilco else ParticlePrediction)
+        restored = restore(r, task=make_experiment_task(r.config))
+        assert restored.trial == len(r.trials) and restored.num_points == transitions[-1]
+        np.testing.assert_array_equal(np.asarray(ravel_pytree(restored.policy)[0]), r.trials[-1].policy)
+        last = [t.gp for t in r.trials if t.gp is not None][-1]
+        np.testing.assert_array_equal(np.asarray(restored.warm_start.hyper.log_lengthscale), last.log_lengthscale)
+        assert rebuildable_trials(r) == [t.index for t in r.trials if t.kind == "learned"
+                                         and (not t.gp.sparse or t.gp.inducing is not None)]
+        write_result(tmp_path / p.name, r)
+        a, b = _trial_entries(p), _trial_entries(tmp_path / p.name)
+        assert a.keys() == b.keys(), (p.name, sorted(a.keys() ^ b.keys())[:5])
+        for k in a:
+            assert np.array_equal(np.asarray(a[k]), np.asarray(b[k]), equal_nan=np.asarray(a[k]).dtype.kind == "f"), k
 
 
 # -- 7. numbering -------------------------------------------------------------------------------------------------

@@ -13,10 +13,17 @@ import numpy as np
 import pytest
 
 from pipps.cli import main
-from pipps.experiments.loop import _particle_prediction
+from pipps.experiments.programs import predict_particles
 from pipps.experiments.methods import particle_method
 from pipps.studies import load_snapshot
 from pipps.studies.gradients import interval, landscape, variance_study
+
+
+def _particle_prediction(task, rcfg, store):
+    """The loop's stored particle prediction, as a function of (key, policy, model)."""
+    predict = jax.jit(lambda key, policy, model: predict_particles(key, task, rcfg, store, policy, model))
+    return lambda key, policy, model: {"particles": np.asarray(predict(key, policy, model)[0])}
+
 
 RESULT = Path(__file__).resolve().parents[1] / "results/thesis/cartpole_swingup_angle_k1_tp_thesis_s0.h5"
 TRIAL = 2
@@ -70,9 +77,9 @@ def test_snapshot_reproduces_the_trials_stored_particle_prediction(snap):
     permuted = predict(k_pred, snap.unravel(stored.policy), _reversed_model(snap))["particles"]
     spread = float(np.max(np.abs(np.asarray(permuted) - np.asarray(pred))))
     assert 0.0 < spread < 1e-6, spread  # rounding, amplified, but rounding
-    np.testing.assert_allclose(pred, stored.predicted["particles"], rtol=0, atol=100 * spread)
+    np.testing.assert_allclose(pred, stored.predicted.particles, rtol=0, atol=100 * spread)
     other = predict(jax.random.fold_in(k_pred, 1), snap.unravel(stored.policy), snap.model)["particles"]
-    assert float(np.max(np.abs(np.asarray(other) - stored.predicted["particles"]))) > 1e4 * spread
+    assert float(np.max(np.abs(np.asarray(other) - stored.predicted.particles))) > 1e4 * spread
     assert snap.num_points == 60
     # and the snapshot's policy is the one trial 2 started from: what trial 1 ran
     np.testing.assert_array_equal(np.asarray(snap.theta), read_result(RESULT).trials[1].policy)
@@ -220,11 +227,11 @@ def test_snapshot_of_a_fitc_trial_reproduces_its_stored_prediction(tmp_path):
     path = tmp_path / "fitc.h5"
     run_experiment(cfg, on_trial=lambda r: write_result(path, r))
     stored = read_result(path).trials[-1]
-    assert stored.gp_info["sparse"] and stored.gp_info["inducing"].shape == (20, 5)
+    assert stored.gp.sparse and stored.gp.inducing.shape == (20, 5)
     snap = load_snapshot(path, stored.index)
     assert snap.model.inputs.shape == (20, 5)
     k_trials = jax.random.split(jax.random.PRNGKey(cfg.seed))[1]
     k_pred = jax.random.split(jax.random.split(jax.random.fold_in(k_trials, stored.index), 4)[2], 3)[2]
     rcfg, _ = particle_method(cfg)
     pred = _particle_prediction(snap.task, rcfg, cfg.store_particles)(k_pred, snap.unravel(stored.policy), snap.model)
-    np.testing.assert_allclose(pred["particles"], stored.predicted["particles"], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(pred["particles"], stored.predicted.particles, rtol=1e-9, atol=1e-9)

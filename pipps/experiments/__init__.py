@@ -4,8 +4,9 @@ the thesis' success-rate tables and rerun plots (experiments.md). See docs/exper
 from pipps.experiments.config import PRESET_NAMES, ConfigError, ExperimentConfig, resolve_config
 from pipps.experiments.loop import ExperimentResult, TrialResult, judge_success, run_experiment
 from pipps.experiments.methods import METHODS, Method
+from pipps.experiments.state import restore
 
 __all__ = [
     "ConfigError", "ExperimentConfig", "ExperimentResult", "METHODS", "Method", "PRESET_NAMES", "TrialResult",
-    "judge_success", "resolve_config", "run_experiment",
+    "judge_success", "resolve_config", "restore", "run_experiment",
 ]

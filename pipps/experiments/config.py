@@ -400,7 +400,7 @@ IDENTITY = ("task", "protocol", "method", "cost", "cost_scale", "k", "seed")
 #: (same distribution). ``progress_chunk`` splits the policy steps into compiled calls of another
 #: length, each call keyed by the step it starts at, so it changes which random numbers are drawn,
 #: not their distribution. Both leave an experiment equal in distribution (docs/performance.md,
-#: "Exact GP capacities"); each trial stores the capacity it used (``gp_info["capacity"]``).
+#: "Exact GP capacities"); each trial stores the capacity it used (``trial.gp.capacity``).
 COMPUTATIONAL = ("gp_chunk", "progress_chunk")
 
 

@@ -81,12 +81,11 @@ def standard_error(returns) -> float:
 
 
 def evaluation_keys(cfg, index: int):
-    """The keys of trial ``index``'s evaluation rollouts, as :func:`pipps.experiments.loop.run_experiment` draws them."""
-    import jax
+    """The keys of trial ``index``'s evaluation rollouts, as the learning loop draws them
+    (:func:`pipps.experiments.state.evaluation_keys`)."""
+    from pipps.experiments.state import evaluation_keys as keys
 
-    k_trials = jax.random.split(jax.random.PRNGKey(cfg.seed))[1]
-    k_eval = jax.random.split(jax.random.fold_in(k_trials, index), 4)[1]
-    return jax.random.split(k_eval, cfg.eval_rollouts)
+    return keys(cfg, index)
 
 
 class Resimulator:

@@ -21,7 +21,7 @@ import numpy as np
 
 from pipps import charts as ch
 from pipps.experiments.methods import METHODS
-from pipps.experiments.loop import ExperimentResult
+from pipps.experiments.records import ExperimentResult, MomentPrediction, ParticlePrediction
 from pipps.experiments.tables import Cell, CellResult, Table
 
 PANEL = (480.0, 340.0)
@@ -220,9 +220,9 @@ def diagnostics_figure(groups: list[tuple[str, ExperimentResult]]) -> ch.Figure:
               for gi, (_, r) in enumerate(groups)]
     with_diag = [(n, r) for n, r in groups if r.trials[-1].diagnostics is not None]
     if with_diag:
-        T = max(len(r.trials[-1].diagnostics["k_lr"]) for _, r in with_diag)
+        T = max(len(r.trials[-1].diagnostics.k_lr) for _, r in with_diag)
         step = ch.Axis("time step t", 0.5, T + 0.5)
-        variances = [r.trials[-1].diagnostics[f"var_{p}"] for _, r in with_diag for p in ("rp", "lr")]
+        variances = [getattr(r.trials[-1].diagnostics, f"var_{p}") for _, r in with_diag for p in ("rp", "lr")]
         charts.append(ch.chart("diagnostics/k_lr", "k_LR per step, mean over the final trial's policy steps", step,
                                ch.Axis("k_LR: weight of the LR estimate", -0.04, 1.04), PANEL))
         charts.append(ch.chart("diagnostics/variance", "gradient variance per step (same average)", step,
@@ -243,18 +243,18 @@ def prediction_chart(path: str, title: str, r: ExperimentResult, size=PANEL) -> 
     idx, real_idx, label = ANGLE_INDEX[r.config.task]
     dt = make_experiment_task(r.config).dt
     values = [final.states[:, real_idx]]
-    pred = final.predicted or {}
-    if "particles" in pred:
-        values.append(pred["particles"][:, :, idx])
-    elif "mean" in pred:
+    pred = final.predicted
+    if isinstance(pred, ParticlePrediction):
+        values.append(pred.particles[:, :, idx])
+    elif isinstance(pred, MomentPrediction):
         m, s = _gaussian_angle(pred, idx)
         values += [m - 2 * s, m + 2 * s]
     T = final.states.shape[0] - 1
     return ch.chart(path, title, ch.Axis("time (s)", -0.02 * T * dt, 1.02 * T * dt), ch.Axis(label, *ch.data_range(values)), size)
 
 
-def _gaussian_angle(pred, idx: int) -> tuple[np.ndarray, np.ndarray]:
-    return pred["mean"][:, idx], np.sqrt(np.maximum(pred["cov"][:, idx, idx], 0.0))
+def _gaussian_angle(pred: MomentPrediction, idx: int) -> tuple[np.ndarray, np.ndarray]:
+    return pred.mean[:, idx], np.sqrt(np.maximum(pred.cov[:, idx, idx], 0.0))
 
 
 def record_diagnostics(groups: list[tuple[str, ExperimentResult]], out: str | Path) -> Path:
@@ -271,10 +271,10 @@ def record_diagnostics(groups: list[tuple[str, ExperimentResult]], out: str | Pa
                 if d is None:
                     continue
                 color = PALETTE[gi % len(PALETTE)]
-                t = np.arange(1, len(d["k_lr"]) + 1)
-                ch.line(rec, k_chart, f"group_{gi}", t, d["k_lr"], color, width=1.4)
-                ch.line(rec, v_chart, f"group_{gi}/rp", t, d["var_rp"], color, width=1.4)
-                ch.line(rec, v_chart, f"group_{gi}/lr", t, d["var_lr"], color, width=1.4, dash=True)
+                t = np.arange(1, len(d.k_lr) + 1)
+                ch.line(rec, k_chart, f"group_{gi}", t, d.k_lr, color, width=1.4)
+                ch.line(rec, v_chart, f"group_{gi}/rp", t, d.var_rp, color, width=1.4)
+                ch.line(rec, v_chart, f"group_{gi}/lr", t, d.var_lr, color, width=1.4, dash=True)
     return Path(out)
 
 
@@ -285,13 +285,13 @@ def draw_prediction(rec, c: ch.Chart, r: ExperimentResult, color) -> None:
     final = r.trials[-1]
     idx, real_idx, _ = ANGLE_INDEX[r.config.task]
     dt = make_experiment_task(r.config).dt
-    pred = final.predicted or {}
-    if "particles" in pred:
-        x = pred["particles"][:, :, idx]
+    pred = final.predicted
+    if isinstance(pred, ParticlePrediction):
+        x = pred.particles[:, :, idx]
         t = np.arange(x.shape[0]) * dt
         for j in range(x.shape[1]):
             ch.line(rec, c, f"particles/{j}", t, x[:, j], ch.lighter(color, 0.45), width=0.6, order=5.0)
-    elif "mean" in pred:
+    elif isinstance(pred, MomentPrediction):
         m, s = _gaussian_angle(pred, idx)
         t = np.arange(len(m)) * dt
         ch.line(rec, c, "gaussian/mean", t, m, color, width=1.4)

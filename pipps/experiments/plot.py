@@ -128,12 +128,12 @@ def _log_diagnostics(rec, name: str, r: ExperimentResult, color) -> None:
         rec.log(f"diagnostics/log10_variance/{name}/{part}", rr.SeriesLines(colors=[c], names=[f"{name} σ²_{part.upper()}"]),
                 static=True)
     with np.errstate(all="ignore"):
-        for t in range(len(d["k_lr"])):
+        for t in range(len(d.k_lr)):
             rec.set_time(TIMELINE, sequence=t + 1)
-            if np.isfinite(d["k_lr"][t]):
-                rec.log(f"diagnostics/k_lr/{name}", rr.Scalars([d["k_lr"][t]]))
+            if np.isfinite(d.k_lr[t]):
+                rec.log(f"diagnostics/k_lr/{name}", rr.Scalars([d.k_lr[t]]))
             for part in ("rp", "lr"):
-                v = d[f"var_{part}"][t]
+                v = getattr(d, f"var_{part}")[t]
                 if np.isfinite(v) and v > 0:
                     rec.log(f"diagnostics/log10_variance/{name}/{part}", rr.Scalars([np.log10(v)]))
 

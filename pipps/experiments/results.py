@@ -9,13 +9,17 @@ The schema (version :data:`SCHEMA_VERSION`) is documented in docs/results-schema
     /versions              attrs: pipps, jax, jaxlib, numpy, h5py, python, platform, device
     /eval_return           (n,) mean evaluation return per finished trial
     /upright_fraction      (n,)
-    /trials/NNN            attrs: kind, eval_return, upright_fraction
-        states observations actions costs valid eval_returns eval_upright policy
-        timings/           attrs: seconds per phase
-        gp/                log_lengthscale log_signal log_noise objective; attrs sparse, num_points, messages
-        opt_trace/         per policy step (or quasi-Newton line search) arrays
-        diagnostics/       per time step k_lr var_rp var_lr, k_lr_per_iteration, nonfinite_steps
-        predicted/         particles (T+1, S_p, D) and cost_mean, or PILCO mean/cov/cost_mean
+    /trials/NNN            a TrialResult (pipps.experiments.records); attrs kind, eval_return, upright_fraction
+        states observations actions costs valid eval_returns eval_upright policy eval_balanced
+        timings/           Timings: attrs, seconds per phase
+        gp/                GPRecord: log_lengthscale log_signal log_noise objective [inducing ...];
+                           attrs sparse, num_points, messages, capacity
+        opt_trace/         StepTrace (per policy step) or SearchTrace (per quasi-Newton line search)
+        diagnostics/       Diagnostics: per time step k_lr var_rp var_lr, k_lr_per_iteration, nonfinite_steps
+        predicted/         ParticlePrediction (particles (T+1, S_p, D), cost_mean) or MomentPrediction
+
+A trial is written by walking its records' fields (:func:`_write_record`): each field says whether
+it is an attribute or a dataset, a nested record is a subgroup; the reader walks them back.
 
 Every write goes to a temporary file in the same folder, is flushed to disk and then renamed
 over the target (``os.replace``), so a reader never sees a half-written file under the final
@@ -26,6 +30,7 @@ reported as corrupt, not read.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import json
@@ -39,11 +44,10 @@ import h5py
 import numpy as np
 
 from pipps.experiments.config import ExperimentConfig, config_difference, config_hash, from_dict, same_experiment
-from pipps.experiments.loop import ExperimentResult, TrialResult, judge_return
+from pipps.experiments.records import ExperimentResult, TrialResult, judge_return, required_fields
 
 SCHEMA_VERSION = 1
 _TRIAL_ARRAYS = ("states", "observations", "actions", "costs", "valid", "eval_returns", "eval_upright", "policy")
-_SUBGROUPS = ("opt_trace", "diagnostics", "predicted")
 NONE = "__none__"
 
 
@@ -100,34 +104,38 @@ def _config_json(cfg: ExperimentConfig) -> str:
     return json.dumps(cfg.to_dict(), sort_keys=True)
 
 
-def _write_dict(group: h5py.Group, d: dict[str, Any]) -> None:
-    for name, value in d.items():
-        if isinstance(value, str):
-            group.attrs[name] = value
-        elif isinstance(value, (bool, int, float, np.generic)) and np.ndim(value) == 0:
-            # scalars are attributes whether they come from the loop (Python) or a resumed file (numpy)
-            group.attrs[name] = value.item() if isinstance(value, np.generic) else value
-        elif value is not None:
-            group.create_dataset(name, data=np.asarray(value), compression="gzip" if np.size(value) > 256 else None)
+def _write_loose(group: h5py.Group, name: str, value: Any) -> None:
+    """An entry a record keeps in ``extra``: strings and scalars as attributes, the rest as datasets."""
+    if isinstance(value, str) or (isinstance(value, (bool, int, float, np.generic)) and np.ndim(value) == 0):
+        group.attrs[name] = value.item() if isinstance(value, np.generic) else value
+    elif value is not None:
+        group.create_dataset(name, data=np.asarray(value), compression="gzip" if np.size(value) > 256 else None)
+
+
+def _write_record(group: h5py.Group, record) -> None:
+    """Store a typed record (:mod:`pipps.experiments.records`) in ``group``, field by field as its
+    metadata says: attributes, datasets, nested records as subgroups; None is left out."""
+    for f in dataclasses.fields(record):
+        how, value = f.metadata.get("h5"), getattr(record, f.name)
+        if value is None or how is None:
+            continue
+        if how == "attr":
+            group.attrs[f.name] = f.metadata["convert"](value)
+        elif how == "array":
+            value = np.asarray(value, dtype=f.metadata["dtype"])
+            group.create_dataset(f.name, data=value,
+                                 compression="gzip" if f.metadata["compress"] and value.size > 256 else None)
+        elif how == "group":
+            _write_record(group.create_group(f.name), value)
+        elif how == "extra":
+            for name, v in value.items():
+                _write_loose(group, name, v)
 
 
 def _write_trial(group: h5py.Group, t: TrialResult) -> None:
-    group.attrs["kind"] = t.kind
-    group.attrs["eval_return"] = t.eval_return
+    group.attrs["eval_return"] = t.eval_return  # derived, for readers that look at one number
     group.attrs["upright_fraction"] = t.upright_fraction
-    for name in _TRIAL_ARRAYS:
-        group.create_dataset(name, data=np.asarray(getattr(t, name)))
-    if t.eval_balanced is not None:
-        group.create_dataset("eval_balanced", data=np.asarray(t.eval_balanced, dtype=bool))
-    group.create_group("timings").attrs.update({k: float(v) for k, v in t.timings.items()})
-    if t.gp_hyper is not None:
-        gp = group.create_group("gp")
-        _write_dict(gp, t.gp_hyper)
-        _write_dict(gp, t.gp_info or {})
-    for name in _SUBGROUPS:
-        value = getattr(t, name)
-        if value is not None:
-            _write_dict(group.create_group(name), value)
+    _write_record(group, t)
 
 
 def write_result(path: str | os.PathLike, result: ExperimentResult) -> None:
@@ -258,12 +266,36 @@ def is_complete(path: str | os.PathLike) -> bool:
         return False
 
 
-def _read_group(g: h5py.Group) -> dict[str, Any]:
+def _entries(g: h5py.Group) -> dict[str, Any]:
+    """A group's attributes and datasets by name (a name is one or the other: files resumed by older
+    versions stored some scalars as datasets, docs/results-schema.md)."""
     out: dict[str, Any] = {k: v for k, v in g.attrs.items()}
     for k, v in g.items():
         if isinstance(v, h5py.Dataset):
             out[k] = v[()]
     return out
+
+
+def _read_record(types: tuple[type, ...], g: h5py.Group, **known):
+    """The typed record ``g`` holds: the first of ``types`` whose required fields are all there."""
+    entries = _entries(g)
+    present = set(entries) | set(g.keys()) | set(known)
+    cls = next((c for c in types if required_fields(c) <= present), None)
+    if cls is None:
+        raise ResultError(f"{g.file.filename}: {g.name} holds {sorted(present)}, none of "
+                          f"{', '.join(c.__name__ for c in types)}")
+    kwargs: dict[str, Any] = dict(known)
+    for f in dataclasses.fields(cls):
+        how = f.metadata.get("h5")
+        if how == "group" and f.name in g:
+            kwargs[f.name] = _read_record(f.metadata["types"], g[f.name])
+        elif how == "attr" and f.name in entries:
+            kwargs[f.name] = f.metadata["convert"](entries.pop(f.name))
+        elif how == "array" and f.name in entries:
+            kwargs[f.name] = np.asarray(entries.pop(f.name))
+    if any(f.metadata.get("h5") == "extra" for f in dataclasses.fields(cls)):
+        kwargs["extra"] = entries  # what no field took
+    return cls(**kwargs)
 
 
 def read_result(path: str | os.PathLike, *, verify: bool = True) -> ExperimentResult:
@@ -272,20 +304,7 @@ def read_result(path: str | os.PathLike, *, verify: bool = True) -> ExperimentRe
         check_result(path)
     with h5py.File(path, "r") as f:
         cfg = from_dict(json.loads(f.attrs["config_json"]))
-        trials = []
-        for n in sorted(f["trials"].keys()):
-            g = f["trials"][n]
-            arrays = {a: g[a][()] for a in _TRIAL_ARRAYS}
-            t = TrialResult(int(n), str(g.attrs["kind"]), timings=dict(g["timings"].attrs), **arrays,
-                            eval_balanced=g["eval_balanced"][()] if "eval_balanced" in g else None)
-            if "gp" in g:
-                gp = _read_group(g["gp"])
-                t.gp_hyper = {k: gp.pop(k) for k in ("log_lengthscale", "log_signal", "log_noise")}
-                t.gp_info = gp
-            for name in _SUBGROUPS:
-                if name in g:
-                    setattr(t, name, _read_group(g[name]))
-            trials.append(t)
+        trials = [_read_record((TrialResult,), f["trials"][n], index=int(n)) for n in sorted(f["trials"].keys())]
         return ExperimentResult(cfg, trials, str(f.attrs["status"]), str(f.attrs["error"]),
                                 float(f.attrs["wall_seconds"]), [int(i) for i in f.attrs.get("resumed_at", [])])
 

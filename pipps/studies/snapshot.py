@@ -20,7 +20,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from pipps.experiments.config import ExperimentConfig
-from pipps.gp import GPHyper, GPPosterior, full_posterior, make_data, pad_to_capacity
+from pipps.gp import GPHyper, GPPosterior, full_posterior
 from pipps.gp.fitc import fitc_posterior
 from pipps.tasks.base import Task
 
@@ -63,45 +63,37 @@ class Snapshot:
 
 
 def load_snapshot(path: str | os.PathLike, trial: int, *, gp_chunk: int | None = None) -> Snapshot:
-    """The policy and model at the start of learned trial ``trial``'s optimisation (module doc).
+    """The policy and model at the start of learned trial ``trial``'s optimisation (module doc): the
+    loop's state at that trial (:func:`pipps.experiments.state.restore`) with the trial's own GP.
     ``gp_chunk``: pad the data to multiples of this instead of the file's setting (1: no padding).
 
     Raises:
-      ValueError: ``trial`` is not a learned trial of the file, or the trial used FITC.
+      ValueError: ``trial`` is not a learned trial of the file, or its FITC model cannot be rebuilt.
     """
-    from pipps.experiments.loop import gp_config, init_policy, make_experiment_task
     from pipps.experiments.results import read_result
-    from pipps.rollout import Trajectory, training_pairs
+    from pipps.experiments.state import gp_config, make_experiment_task, rebuildable_trials, restore
 
     result = read_result(path)
     cfg = result.config
     learned = [t.index for t in result.trials if t.kind == "learned"]
     if trial not in learned:
         raise ValueError(f"trial {trial} is not a learned trial of {path} (learned trials: {learned})")
-    t = result.trials[trial]
-    sparse = t.gp_info is not None and bool(t.gp_info.get("sparse", False))
-    if sparse and "inducing" not in t.gp_info:
+    gp = result.trials[trial].gp
+    if trial not in rebuildable_trials(result):
         raise ValueError(f"trial {trial} of {path} used a FITC model whose inducing inputs this (older) file does "
                          f"not store; pick a trial with at most fitc_threshold={cfg.fitc_threshold} points")
     task = make_experiment_task(cfg)
-    xs, ys = [], []
-    for prev in result.trials[:trial]:
-        traj = Trajectory(*(jnp.asarray(getattr(prev, n)) for n in ("states", "observations", "actions", "costs", "valid")))
-        a, b = training_pairs(task, traj)
-        xs.append(a)
-        ys.append(b)
-    data = pad_to_capacity(make_data(np.concatenate(xs), np.concatenate(ys)), chunk=cfg.gp_chunk if gp_chunk is None else gp_chunk)
-    hyper = GPHyper(*(jnp.asarray(t.gp_hyper[n]) for n in ("log_lengthscale", "log_signal", "log_noise")))
-    if sparse:
-        model, jitter, ok = fitc_posterior(hyper, data, jnp.asarray(t.gp_info["inducing"]), gp_config(cfg))
+    state = restore(result, trial, task=task)
+    data = state.data(chunk=cfg.gp_chunk if gp_chunk is None else gp_chunk)
+    hyper = GPHyper(*(jnp.asarray(getattr(gp, n)) for n in GPHyper._fields))
+    if gp.sparse:
+        model, jitter, ok = fitc_posterior(hyper, data, jnp.asarray(gp.inducing), gp_config(cfg))
     else:
         model, jitter, ok = full_posterior(hyper, data, gp_config(cfg))
     if not bool(np.all(np.asarray(ok))):
         raise FloatingPointError(f"the posterior Cholesky of trial {trial} failed on rebuilding")
-    _, unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task))
-    policy = unravel(jnp.asarray(result.trials[trial - 1].policy))
-    return Snapshot(str(path), trial, cfg, task, policy, model, int(sum(len(a) for a in xs)), data,
-                    np.asarray(jitter), sparse)
+    return Snapshot(str(path), trial, cfg, task, state.policy, model, state.num_points, data,
+                    np.asarray(jitter), gp.sparse)
 
 
 def pilco_direction(snap: Snapshot) -> jax.Array:

@@ -1,0 +1,131 @@
+"""Before/after check of the learning loop: run tiny experiments with the pipps on PYTHONPATH, and
+compare two folders of their result files entry by entry (issue 19, item 3: one loop for the
+unbatched and the batched runs, typed trial records, ``restore``).
+
+    PYTHONPATH=/path/to/old/checkout python benchmarks/loop_reference.py run /tmp/before
+    PYTHONPATH=. python benchmarks/loop_reference.py run /tmp/after
+    python benchmarks/loop_reference.py compare /tmp/before /tmp/after
+    PYTHONPATH=. python benchmarks/loop_reference.py time      # seconds of one tiny unbatched run
+
+``run`` covers every path of the loop: an unbatched TP run whose GP turns FITC (full and sparse
+warm starts), PILCO, a fixed-seed method, the low-rank variance, two seeds batched by ``lax.map``
+and by ``vmap``, and a resume from trial 3. ``compare`` requires every dataset and attribute to be
+equal bit for bit (value, dtype, shape, compression), except the seconds of the timings, the wall
+time and the versions, which no two runs share. Both parts use only what every pipps version since
+the batched mode has (``run_experiment``, ``run_batched``, ``write_result``, ``read_result``).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+SMALL = dict(num_learned=3, num_particles=8, policy_evals=6, eval_rollouts=3, gp_max_iters=10, progress_chunk=4,
+             store_particles=4, fitc_threshold=40, num_inducing=20, fitc_iters=5, fitc_first_iters=5)
+
+
+def _small(seed, **kw):
+    from pipps.experiments import resolve_config
+    from pipps.experiments.methods import METHODS
+
+    unused = METHODS[kw.get("method", "tp")].unused
+    return resolve_config("quick", "cartpole_swingup", **{**{k: v for k, v in SMALL.items() if k not in unused},
+                                                          "seed": seed, **kw})
+
+
+def _float64():
+    import pipps
+
+    if hasattr(pipps, "enable_float64"):
+        pipps.enable_float64()
+
+
+def run(out: Path) -> None:
+    from pipps.experiments import run_experiment
+    from pipps.experiments.batched import run_batched
+    from pipps.experiments.results import read_result, write_result
+
+    _float64()
+    out.mkdir(parents=True, exist_ok=True)
+
+    def single(name, cfg, resume=None):
+        start = time.perf_counter()
+        run_experiment(cfg, resume=resume, on_trial=lambda r: write_result(out / f"{name}.h5", r))
+        print(f"{name}: {time.perf_counter() - start:.1f} s")
+
+    single("tp_s0", _small(0))
+    single("pilco_s1", _small(1, method="pilco", pilco_linesearches=5, num_learned=2))
+    single("rp_fs_s2", _small(2, method="rp_fs", num_learned=2))
+    single("lowrank_s4", _small(4, variance_tol=1e-3, num_learned=2))
+    for batching in ("map", "vmap"):
+        def write(results, batching=batching):
+            for r in results:
+                write_result(out / f"{batching}_s{r.config.seed}.h5", r)
+
+        start = time.perf_counter()
+        run_batched([_small(s) for s in (0, 3)], on_trial=write, batching=batching)
+        print(f"{batching}: {time.perf_counter() - start:.1f} s")
+    whole = read_result(out / "tp_s0.h5")
+    part = type(whole)(whole.config, whole.trials[:3], "failed", "KeyboardInterrupt: ", 5.0)
+    single("tp_s0_resumed", _small(0), resume=part)
+
+
+def _entries(g: h5py.Group, prefix: str = "") -> dict:
+    out = {f"{prefix}@{k}": (v,) for k, v in g.attrs.items() if k != "wall_seconds"}
+    for k, v in g.items():
+        if k in ("versions", "timings"):
+            out[f"{prefix}/{k}/"] = (sorted(v.attrs),)  # which phases were timed, not their seconds
+        elif isinstance(v, h5py.Dataset):
+            out[f"{prefix}/{k}"] = (v[()], str(v.dtype), v.shape, v.compression)
+        else:
+            out.update(_entries(v, f"{prefix}/{k}"))
+    return out
+
+
+def _same(a: tuple, b: tuple) -> bool:
+    x, y = np.asarray(a[0]), np.asarray(b[0])
+    return (a[1:] == b[1:] and x.dtype == y.dtype and x.shape == y.shape
+            and np.array_equal(x, y, equal_nan=x.dtype.kind in "fc"))
+
+
+def compare(before: Path, after: Path) -> int:
+    bad = 0
+    for p in sorted(before.glob("*.h5")):
+        q = after / p.name
+        if not q.exists():
+            print(f"{p.name}: missing in {after}")
+            bad += 1
+            continue
+        with h5py.File(p) as f, h5py.File(q) as g:
+            a, b = _entries(f), _entries(g)
+        diff = [k for k in sorted(set(a) | set(b)) if k not in a or k not in b or not _same(a[k], b[k])]
+        print(f"{p.name}: {len(a)} entries, " + ("identical" if not diff else f"{len(diff)} differ: {diff[:10]}"))
+        bad += bool(diff)
+    return 1 if bad else 0
+
+
+def time_one() -> None:
+    """Wall and CPU seconds (all threads) of one tiny unbatched TP run (3 learned trials, FITC from
+    trial 2) in this process, compiling included. On a shared machine the CPU seconds are the steadier."""
+    from pipps.experiments import run_experiment
+
+    _float64()
+    start, cpu = time.perf_counter(), time.process_time()
+    run_experiment(_small(0))
+    print(f"{time.perf_counter() - start:.2f} s wall, {time.process_time() - cpu:.2f} s CPU")
+
+
+if __name__ == "__main__":
+    command = sys.argv[1]
+    if command == "run":
+        run(Path(sys.argv[2]))
+    elif command == "compare":
+        sys.exit(compare(Path(sys.argv[2]), Path(sys.argv[3])))
+    elif command == "time":
+        time_one()
+    else:
+        sys.exit(f"unknown command {command!r}: run OUT, compare BEFORE AFTER, or time")

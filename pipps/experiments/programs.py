@@ -1,0 +1,241 @@
+"""The compiled pieces of a trial, over a seed axis: true-system rollouts, their evaluation, and the
+policy optimisation of each method (thesis §4.5.3).
+
+A *seed axis* (:class:`OneSeed` here, :class:`pipps.experiments.batched.SeedBatch` for many) says
+how a program over seeds is computed: ``compile(fn)`` turns a one-seed function into the program,
+``stack`` puts the seeds' values on the axis and ``take`` gets one back, ``fit`` trains their GPs.
+The one-seed axis is no axis at all: its programs are the one-seed functions jitted, so an
+unbatched run computes exactly what it always did. :class:`Programs` builds every program once per
+experiment (or batch) and reuses it across trials.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Callable, NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pipps.experiments.config import ExperimentConfig
+from pipps.experiments.methods import FIXED_SEED, MOMENTUM, PILCO_SEARCH, particle_method, rollout_config
+from pipps.experiments.records import Diagnostics, MomentPrediction, ParticlePrediction, SearchTrace, StepTrace
+from pipps.gp import fit
+from pipps.rollout import rollout
+from pipps.tasks.base import Task
+
+Progress = Callable[[dict[str, Any]], None]
+
+
+class OneSeed:
+    """The seed axis of an unbatched run (module doc): one seed, its values as they are."""
+
+    batched = False
+
+    def compile(self, fn):
+        return jax.jit(fn)
+
+    def compile_steps(self, run):
+        """``steps(keys, state, models, n)`` from a jitted ``run(key, state, model, num_steps)``."""
+        return lambda key, state, model, n: run(key, state, model, num_steps=n)
+
+    def stack(self, trees: Sequence):
+        (tree,) = trees
+        return tree
+
+    def take(self, tree, j: int):
+        del j
+        return tree
+
+    def fit(self, keys, datas, prevs, config):
+        (key,), (data,), (prev,) = keys, datas, prevs
+        return [fit(key, data, prev=prev, config=config)]
+
+
+ONE_SEED = OneSeed()
+
+
+def balance_settings(cfg: ExperimentConfig) -> tuple[int, float, float]:
+    """The cart-pole's physical criterion of ``cfg`` as :func:`pipps.experiments.criteria.balanced` takes it."""
+    return cfg.balance_steps, cfg.balance_angle, cfg.balance_position
+
+
+def evaluate_rollouts(keys, task: Task, policy, balance: tuple[int, float, float] | None = None):
+    """(returns, upright, balanced) of one true-system rollout per key with ``policy`` (None: random
+    actions); fallen steps are charged cost 1. ``balanced``: the cart-pole's physical criterion
+    with ``balance = (steps, angle, position)`` (:mod:`pipps.experiments.criteria`); elsewhere, or
+    without ``balance``, the same as ``upright``. Pure."""
+    from pipps.experiments.criteria import balanced, is_cartpole
+
+    trajs = jax.vmap(lambda k: rollout(k, task, policy))(keys)
+    fallen_steps = task.horizon - jnp.sum(trajs.valid, axis=-1)
+    upright = jnp.all(trajs.valid, axis=-1)
+    ok = balanced(trajs.states, *balance) if balance is not None and is_cartpole(task.name) else upright
+    return trajs.total_cost + fallen_steps, upright, ok
+
+
+def predict_particles(key, task: Task, rcfg, store: int, policy, model):
+    """The stored prediction of a trial: the first ``store`` particles' states (T+1, store, D) and
+    the mean predicted cost per step, from one particle rollout of the optimised policy. Pure."""
+    from pipps.particles.forward import particle_rollout, sample_noise
+
+    rec = particle_rollout(task, policy, model, sample_noise(key, task, rcfg), rcfg, jacobian=False)
+    xs = jnp.concatenate([rec.x[:1], rec.x_next], axis=0)  # (T+1, P, D)
+    return xs[:, :store], jnp.mean(rec.cost, axis=1)
+
+
+class Optimized(NamedTuple):
+    """One seed's policy optimisation: the new policy and what the trial records of it."""
+
+    policy: Any
+    trace: StepTrace | SearchTrace
+    diagnostics: Diagnostics | None
+    predicted: ParticlePrediction | MomentPrediction
+
+
+#: ``optimize(keys, policies, models, progress) -> [Optimized]``, one entry per seed
+Optimize = Callable[[Sequence, Sequence, Sequence, Progress], list[Optimized]]
+
+
+class Programs:
+    """The compiled pieces of one experiment, or one batch of its seeds, built once and reused across trials."""
+
+    def __init__(self, cfg: ExperimentConfig, task: Task, axis=ONE_SEED):
+        self.cfg, self.task, self.axis = cfg, task, axis
+        balance = balance_settings(cfg)
+        self.trial_random = axis.compile(lambda k: rollout(k, task, None))
+        self.evaluate_random = axis.compile(lambda keys: evaluate_rollouts(keys, task, None, balance))
+        self.trial = axis.compile(lambda k, p: rollout(k, task, p))
+        self.evaluate = axis.compile(lambda keys, p: evaluate_rollouts(keys, task, p, balance))
+        build = {MOMENTUM: _momentum_optimizer, FIXED_SEED: _fixed_seed_optimizer, PILCO_SEARCH: _pilco_optimizer}
+        self.optimize: Optimize = build[cfg.method_spec.optimizer](cfg, task, axis)
+
+
+def shape_groups(trees) -> list[list[int]]:
+    """Indices of the pytrees grouped by structure and leaf shapes: the seeds one compiled model takes
+    (one group unless a batch mixes full GPs and FITC, or low-rank variances of different ranks)."""
+    groups: dict = {}
+    for j, tree in enumerate(trees):
+        leaves, treedef = jax.tree_util.tree_flatten(tree)
+        groups.setdefault((treedef, tuple(np.shape(a) for a in leaves)), []).append(j)
+    return list(groups.values())
+
+
+def _momentum_optimizer(cfg: ExperimentConfig, task: Task, axis) -> Optimize:
+    """The estimator's gradient with normalized momentum, ``policy_evals`` steps in chunks of
+    ``progress_chunk`` (each a compiled scan), every seed of a shape group on the axis at once."""
+    from pipps.optimizers.normalized import normalized_momentum
+    from pipps.propagation.update import init_policy_opt_state, make_policy_optimizer
+
+    rcfg, est = particle_method(cfg)
+    opt = normalized_momentum(cfg.learning_rate, cfg.momentum)
+    init = axis.compile(lambda k, p, m: init_policy_opt_state(k, p, m, task=task, config=rcfg, estimator=est,
+                                                               optimizer=opt))
+    steps = axis.compile_steps(make_policy_optimizer(task, rcfg, est, opt))
+    predict = axis.compile(lambda k, p, m: predict_particles(k, task, rcfg, cfg.store_particles, p, m))
+    chunk = min(cfg.progress_chunk, cfg.policy_evals)
+
+    def optimize(keys, policies, models, progress: Progress) -> list[Optimized]:
+        out: list = [None] * len(keys)
+        for group in shape_groups(models):
+            k_init, k_run, k_pred = zip(*(jax.random.split(keys[j], 3) for j in group))
+            model = axis.stack([models[j] for j in group])
+            state = init(axis.stack(k_init), axis.stack([policies[j] for j in group]), model)
+            infos, done, start = [], 0, time.perf_counter()
+            while done < cfg.policy_evals:
+                n = min(chunk, cfg.policy_evals - done)
+                state, info = steps(axis.stack([jax.random.fold_in(k, done) for k in k_run]), state, model, n)
+                info = jax.device_get(info)
+                infos.append(info)
+                done += n
+                last = [axis.take(info, j).value[-1] for j in range(len(group))]
+                progress(dict(phase="optimize", step=done, steps=cfg.policy_evals, objective=float(np.mean(last)),
+                              seconds=time.perf_counter() - start))
+            xs, cost = jax.device_get(predict(axis.stack(k_pred), state.policy, model))
+            for j, s in enumerate(group):
+                trace, diagnostics = step_report([axis.take(i, j) for i in infos])
+                predicted = ParticlePrediction(np.asarray(axis.take(xs, j)), np.asarray(axis.take(cost, j)))
+                out[s] = Optimized(axis.take(state.policy, j), trace, diagnostics, predicted)
+        return out
+
+    return optimize
+
+
+def step_report(infos) -> tuple[StepTrace, Diagnostics]:
+    """(trace, diagnostics) of a policy optimisation from its chunks of per-step infos (host arrays)."""
+    cat = lambda f: np.concatenate([f(i) for i in infos])  # noqa: E731
+    diag = lambda f: cat(lambda i: np.asarray(f(i.diagnostics)))  # noqa: E731
+    trace = StepTrace(cat(lambda i: i.value), cat(lambda i: i.particle_objective), cat(lambda i: i.grad_norm),
+                      cat(lambda i: i.skipped))
+    with np.errstate(all="ignore"):
+        k_lr, var_rp, var_lr = diag(lambda d: d.k_lr), diag(lambda d: d.var_rp), diag(lambda d: d.var_lr)
+        diagnostics = Diagnostics(k_lr=_nanmean(k_lr, 0), var_rp=_nanmean(var_rp, 0), var_lr=_nanmean(var_lr, 0),
+                                  k_lr_per_iteration=_nanmean(k_lr, 1),
+                                  nonfinite_steps=diag(lambda d: d.nonfinite).sum(0))
+    return trace, diagnostics
+
+
+def _nanmean(a: np.ndarray, axis: int) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    finite = np.isfinite(a)
+    n = finite.sum(axis)
+    return np.where(n > 0, np.where(finite, a, 0.0).sum(axis) / np.maximum(n, 1), np.nan)
+
+
+def _search_trace(trace) -> SearchTrace:
+    t = jax.device_get(trace)
+    n = int(t.num_linesearches) + 1
+    return SearchTrace(np.asarray(t.values)[:n], np.asarray(t.evaluations)[:n], np.asarray(t.failed)[:n],
+                       np.asarray(t.stop_reason))
+
+
+def _per_seed(optimize_one) -> Optimize:
+    """A quasi-Newton search has data-dependent line searches: the seeds of a batch run one by one."""
+    return lambda keys, policies, models, progress: [optimize_one(k, p, m, progress)
+                                                     for k, p, m in zip(keys, policies, models)]
+
+
+def _fixed_seed_optimizer(cfg: ExperimentConfig, task: Task, axis) -> Optimize:
+    from pipps.optimizers.quasi_newton import QuasiNewtonConfig
+    from pipps.propagation.fixed_seed import optimize_fixed_seed
+
+    del axis
+    rcfg = rollout_config(cfg)
+    qn = QuasiNewtonConfig(length=-cfg.policy_evals, max_evals_per_linesearch=30)
+    search = jax.jit(lambda key, policy, model: optimize_fixed_seed(key, policy, model, task=task, config=rcfg,
+                                                                     qn_config=qn))
+    predict = jax.jit(lambda key, policy, model: predict_particles(key, task, rcfg, cfg.store_particles, policy, model))
+
+    def optimize_one(key, policy, model, progress: Progress) -> Optimized:
+        start = time.perf_counter()
+        new, trace = search(key, policy, model)
+        trace = _search_trace(trace)
+        progress(dict(phase="optimize", step=cfg.policy_evals, steps=cfg.policy_evals,
+                      objective=float(trace.value[-1]), seconds=time.perf_counter() - start))
+        xs, cost = predict(key, new, model)  # the fixed seed's own particles
+        return Optimized(new, trace, None, ParticlePrediction(np.asarray(xs), np.asarray(cost)))
+
+    return _per_seed(optimize_one)
+
+
+def _pilco_optimizer(cfg: ExperimentConfig, task: Task, axis) -> Optimize:
+    from pipps.pilco import PolicySearchConfig, optimize_policy, pilco_budget, trajectory
+
+    del axis
+    budget = pilco_budget(task) if cfg.pilco_linesearches is None else pilco_budget(task, length=cfg.pilco_linesearches)
+    search_cfg = PolicySearchConfig(optimizer=budget, horizon=cfg.horizon)
+    predict = jax.jit(lambda policy, model: trajectory(task, policy, model, horizon=cfg.horizon))
+
+    def optimize_one(key, policy, model, progress: Progress) -> Optimized:
+        del key
+        start = time.perf_counter()
+        new, trace = optimize_policy(task, model, policy, search_cfg)
+        trace = _search_trace(trace)
+        progress(dict(phase="optimize", step=1, steps=1, objective=float(trace.value[-1]),
+                      seconds=time.perf_counter() - start))
+        traj = jax.device_get(predict(new, model))
+        pred = MomentPrediction(np.asarray(traj.means), np.asarray(traj.covs), np.asarray(traj.cost_mean))
+        return Optimized(new, trace, None, pred)
+
+    return _per_seed(optimize_one)
