@@ -1,0 +1,187 @@
+"""The k_LR rules of issue 20: leave-one-out, split, cross-fit and guarded (docs/estimators.md,
+"Choosing k_LR"; numbers in docs/estimator-variance.md).
+
+Exact identities first:
+
+* the O(P·n) leave-one-out and split statistics equal a direct computation over the other
+  particles, also where one particle's gradient is 10¹² times the others' (the downdate of the
+  sum of squares would cancel there);
+* a per-particle weight that is the same for every particle gives bit for bit the scalar weight's
+  combination (the (P, 1) path of ``mix`` is the scalar path);
+* the guarded source is "previous" below its threshold and LR at or above it;
+* the cross-fit is what it says: each half's contributions equal a separate sweep of that half with
+  the weights read from a separate pilot sweep of the other half.
+
+Then statistics against an exact gradient (linear-Gaussian reference system, as in
+tests/test_estimators_unbiased.py): the cross-fit, which is exactly unbiased by construction,
+passes the Bonferroni z-test, and the same test with the same R detects the thesis' bias (power).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.flatten_util import ravel_pytree
+
+from pipps.particles.forward import ParticleRecord, RolloutConfig, particle_rollout, sample_noise
+from pipps.propagation.backward import PreviousIteration, backward_sweep
+from pipps.propagation.combine import (
+    FixedWeight,
+    GuardedWeight,
+    InverseVariance,
+    _total_propagation,
+    leave_one_out_statistics,
+    split_statistics,
+)
+from pipps.propagation.config import estimator, thesis_estimator
+from pipps.propagation.cross_fit import CrossFitted
+from pipps.propagation.estimate import estimate, init_estimator_state
+from pipps.stats import replicate_gradients, z_bound
+from pipps.systems import exact_objective, reference_system
+
+
+def _gradients(scale_top: float) -> np.ndarray:
+    rng = np.random.default_rng(4)
+    g = rng.normal(size=(12, 5)) * np.array([1.0, 3.0, 0.1, 2.0, 5.0])
+    g[7] *= scale_top
+    return g
+
+
+def _direct_others(g: np.ndarray, others) -> tuple[float, np.ndarray]:
+    sub = g[others]
+    return float(np.sum(np.var(sub, axis=0, ddof=1))), sub.mean(axis=0)
+
+
+@pytest.mark.parametrize("scale_top", [1.0, 1e6, 1e12])
+def test_leave_one_out_statistics_equal_a_direct_computation(scale_top):
+    g = _gradients(scale_top)
+    st = leave_one_out_statistics(jnp.asarray(g))
+    assert st.count == g.shape[0] - 1
+    for i in range(g.shape[0]):
+        var, mean = _direct_others(g, np.arange(g.shape[0]) != i)
+        np.testing.assert_allclose(float(st.var[i]), var, rtol=1e-9)
+        np.testing.assert_allclose(np.asarray(st.mean[i]), mean, rtol=1e-9, atol=1e-12 * np.abs(mean).max())
+
+
+def test_split_statistics_are_the_other_halfs():
+    g = _gradients(1e6)
+    st = split_statistics(jnp.asarray(g))
+    half = np.arange(g.shape[0]) % 2
+    for i in range(g.shape[0]):
+        var, mean = _direct_others(g, half != half[i])
+        np.testing.assert_allclose(float(st.var[i]), var, rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(st.mean[i]), mean, rtol=1e-12)
+
+
+class _SameForEveryParticle:
+    """A per-particle source whose weights are all ``k`` (for the (P, 1) path of the combination)."""
+
+    uses_previous_k = False
+
+    def __init__(self, k):
+        self.k = k
+
+    def weight(self, rule, g_rp, g_lr, k_batch, k_previous, has_previous):
+        return jnp.full(g_rp.shape[0], self.k, g_rp.dtype)
+
+
+def test_a_per_particle_weight_equal_for_all_is_the_scalar_weight_bit_for_bit():
+    rng = np.random.default_rng(1)
+    g = jnp.asarray(rng.normal(size=(2, 9, 4)))
+    messages = [jnp.asarray(rng.normal(size=(9, 3))) for _ in range(2)]
+    args = (g, messages, jnp.asarray(0.2), jnp.asarray(True))
+    scalar = _total_propagation(InverseVariance(FixedWeight(0.3)), *args)
+    per_particle = _total_propagation(InverseVariance(_SameForEveryParticle(0.3)), *args)
+    for name in ("gradient", "message", "k_batch", "variances"):
+        for x, y in zip(jax.tree.leaves(getattr(scalar, name)), jax.tree.leaves(getattr(per_particle, name))):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=name)
+    assert float(per_particle.k) == pytest.approx(0.3, rel=1e-15)  # the reported mean of nine 0.3s
+
+
+def test_guarded_is_previous_below_its_threshold_and_lr_above():
+    src = GuardedWeight(0.99)
+    k = lambda kb, kp, has: float(src.choose(jnp.asarray(kb), jnp.asarray(kp), jnp.asarray(has)))  # noqa: E731
+    assert k(0.5, 0.2, True) == 0.2
+    assert k(0.989, 0.2, True) == 0.2
+    assert k(0.99, 0.2, True) == 1.0 and k(0.999999, 0.0, True) == 1.0
+    assert k(0.5, 0.2, False) == 0.5  # first iteration: this batch's, as "previous"
+    assert estimator("tp", k_lr="guarded").needs_previous_k and not estimator("tp", k_lr="leave_one_out").needs_previous_k
+
+
+# -- the cross-fit is two pilot and two final half sweeps ----------------------------------------------
+
+
+def _half(record: ParticleRecord, h: int) -> ParticleRecord:
+    P = record.x.shape[1]
+    sl = slice(0, P // 2) if h == 0 else slice(P // 2, P)
+    return ParticleRecord(*(None if a is None else a[:, sl] for a in record))
+
+
+def test_cross_fit_is_each_half_swept_with_the_other_halfs_pilot_weights():
+    task, model, policy = reference_system(0.3, "saturating")
+    cfg = RolloutConfig(num_particles=16)
+    est = estimator("tp", k_lr="cross_fit")
+    assert isinstance(est, CrossFitted) and est.pilot == "leave_one_out" and not est.needs_previous_k
+    state = init_estimator_state(jax.random.PRNGKey(2), policy, model, task=task, config=cfg, estimator=est)
+    record = particle_rollout(task, policy, model, sample_noise(jax.random.PRNGKey(5), task, cfg), cfg, jacobian=True)
+    prev = state.previous()
+    got = np.asarray(est.sweep(task, policy, record, cfg, prev).contributions)
+
+    pilot_est, final_est = estimator("tp", k_lr="leave_one_out"), estimator("tp", k_lr="previous")
+    k_pilot = [backward_sweep(task, policy, _half(record, h), cfg, pilot_est, prev).diagnostics.k_lr_batch for h in (0, 1)]
+    for h in (0, 1):
+        other = PreviousIteration(prev.baseline, k_pilot[1 - h], jnp.asarray(True))
+        want = np.asarray(backward_sweep(task, policy, _half(record, h), cfg, final_est, other).contributions)
+        np.testing.assert_allclose(got[h * 8 : (h + 1) * 8], want, rtol=1e-12, atol=1e-14 * np.abs(want).max())
+    k0, k1 = (np.asarray(k) for k in k_pilot)
+    assert np.all((k0 > 0) & (k0 < 1)) and not np.allclose(k0, k1)  # the halves' weights really differ
+
+    _, e = estimate(jax.random.PRNGKey(5), state, policy, model, task=task, config=cfg, estimator=est)
+    np.testing.assert_allclose(np.asarray(ravel_pytree(e.grad)[0]), got.mean(0), rtol=1e-12)
+
+
+def test_cross_fit_refuses_what_it_cannot_split():
+    task, model, policy = reference_system(0.3, "saturating")
+    cfg = RolloutConfig(num_particles=9)
+    est = estimator("tp", k_lr="cross_fit")
+    state = init_estimator_state(jax.random.PRNGKey(2), policy, model, task=task, config=cfg, estimator=est)
+    with pytest.raises(ValueError, match="P must be even"):
+        estimate(jax.random.PRNGKey(5), state, policy, model, task=task, config=cfg, estimator=est)
+    with pytest.raises(ValueError, match="total propagation"):
+        CrossFitted(estimator("lr"))
+
+
+# -- unbiasedness against the exact gradient (linear-Gaussian reference system) --------------------------
+
+ALPHA = 1e-3  # family-wise false-alarm probability
+N_THETA = 4  # the reference policy's parameters
+R_UNBIASED = 2000
+# the comparisons of this family: (name, estimator, P); each must pass, with every coordinate's |z|
+UNBIASED = [
+    ("cross_fit", estimator("tp", k_lr="cross_fit"), 30),
+    ("cross_fit_batch_pilot", CrossFitted(estimator("tp", k_lr="batch"), "batch"), 30),
+]
+Z_BOUND = z_bound(N_THETA * len(UNBIASED), ALPHA)
+
+
+def _z_against_exact(est, P: int, R: int, seed: int):
+    task, model, policy = reference_system(0.3, "saturating")
+    exact = np.asarray(ravel_pytree(jax.grad(exact_objective, argnums=2)(task, model, policy))[0])
+    g = replicate_gradients(jax.random.PRNGKey(seed), task, model, policy, RolloutConfig(num_particles=P), est, R)
+    mean, se = g.mean(0), g.std(0, ddof=1) / np.sqrt(R)
+    assert np.linalg.norm(exact) > 1e-2 and np.all(se > 0)
+    return (mean - exact) / se, mean, exact, se
+
+
+@pytest.mark.parametrize("name, est, P", UNBIASED, ids=[u[0] for u in UNBIASED])
+def test_the_cross_fit_is_unbiased(name, est, P):
+    z, mean, exact, se = _z_against_exact(est, P, R_UNBIASED, seed=101)
+    print(f"{name} P={P}: R = {R_UNBIASED}, bound {Z_BOUND:.2f}, z = {np.round(z, 2)}, rel. SE {np.linalg.norm(se) / np.linalg.norm(exact):.4f}")
+    assert np.max(np.abs(z)) < Z_BOUND, f"{name}: z = {z}, mean {mean}, exact {exact}, se {se}"
+
+
+def test_the_same_test_detects_the_thesis_bias():
+    """Power: the thesis' TP (eq. 4.3 baseline and batch k_LR) fails the test above at the same R
+    (expected max |z| ≈ 7.7, tests/test_estimators_unbiased.py)."""
+    z, *_ = _z_against_exact(thesis_estimator("tp"), 30, R_UNBIASED, seed=101)
+    assert np.max(np.abs(z)) > Z_BOUND, f"z = {z}"
