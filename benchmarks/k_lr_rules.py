@@ -23,11 +23,16 @@ Per cell, R replicates of every rule on common random numbers
   machine-independent cost; ``MSE × s``: the MSE at equal time (averaging n estimates divides the
   variance, not the bias², by n — for a biased rule this product understates its MSE at long times).
 
+``--lg-bias R`` adds a second table at higher power: on the linear-Gaussian system, each TP rule's
+bias against the exact gradient and, paired on the same particles, against TP "previous" (exactly
+unbiased), whose common sampling error the paired difference cancels.
+
 The cores may be shared with other work: times are medians, and the GEMM rate is measured in the
 same run so that the Gflop-equivalents stay comparable.
 
     JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py            # the documented table
     JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py --quick    # a smoke run
+    JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py --cells --lg-bias 40000 --lg-particles 10 30   # the bias table only
 """
 
 from __future__ import annotations
@@ -157,6 +162,35 @@ def cell_rows(name: str, P: int, R: int, seed: int, gflops: float, timing: bool)
     return rows
 
 
+BIAS_RULES = ("previous", "batch", "leave_one_out", "split", "cross_fit", "guarded")
+
+
+def lg_bias_rows(P: int, R: int, seed: int) -> list[str]:
+    """Bias of each TP rule at P on the linear-Gaussian system: against the exact gradient, and
+    paired against TP "previous" on the same particles."""
+    task, model, policy = system("linear-Gaussian")
+    exact = np.asarray(ravel_pytree(jax.grad(exact_objective, argnums=2)(task, model, policy))[0])
+    ests = {n: estimator("tp", k_lr=n) for n in BIAS_RULES}
+    run = jax.jit(
+        functools.partial(
+            paired_replicate_gradients, task=task, model=model, policy=policy, config=rollout_config("linear-Gaussian", P),
+            estimators=ests, num_replicates=R, batch_size=200,
+        )
+    )
+    g = {n: np.asarray(v) for n, v in run(jax.random.PRNGKey(seed)).grad.items()}
+    rows = []
+    for n in BIAS_RULES:
+        _, rel, zmax = bias(g[n], exact)
+        z = (g[n].mean(0) - exact) / (g[n].std(0, ddof=1) / np.sqrt(R))
+        if n == "previous":
+            paired = "(reference)"
+        else:
+            b, _, pz = bias(g[n], g["previous"])
+            paired = f"{np.linalg.norm(b) / np.linalg.norm(exact):.4f} ({pz:.1f})"
+        rows.append(f"| {P} | {R} | {n} | {rel:.4f} | {np.array2string(z, precision=1, separator=', ')} | {paired} |")
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--particles", type=int, nargs="+", default=[30, 100])
@@ -164,7 +198,8 @@ def main(argv=None):
     ap.add_argument("--replicates-large-p", type=int, default=400, help="R per kicked-rotor cell at P >= 100")
     ap.add_argument("--lg-particles", type=int, nargs="+", default=[30])
     ap.add_argument("--lg-replicates", type=int, default=20000, help="R per linear-Gaussian cell")
-    ap.add_argument("--cells", nargs="+", default=["chaotic", "smooth", "linear-Gaussian"])
+    ap.add_argument("--cells", nargs="*", default=["chaotic", "smooth", "linear-Gaussian"])
+    ap.add_argument("--lg-bias", type=int, default=0, metavar="R", help="also the linear-Gaussian bias table with R replicates")
     ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--seed", type=int, default=20)
     ap.add_argument("--quick", action="store_true", help="smoke run: P = 30, R = 60, linear-Gaussian R = 200")
@@ -188,7 +223,15 @@ def main(argv=None):
                 R = args.replicates if P < 100 else args.replicates_large_p
             lines += cell_rows(name, P, R, args.seed + P, gflops, not args.no_timing)
             print(f"[{name} P={P} done at {time.perf_counter() - start:.0f} s]", flush=True)
-    print("\n" + "\n".join(lines) + "\n")
+    if args.cells:
+        print("\n" + "\n".join(lines) + "\n")
+    if args.lg_bias:
+        head = ["P", "R", "k_lr", "bias vs exact: ‖b‖/‖∇J‖", "z per coordinate", "paired vs previous: ‖b‖/‖∇J‖ (max |z|)"]
+        rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        for P in args.lg_particles:
+            rows += lg_bias_rows(P, args.lg_bias, args.seed + 1000 + P)
+        print(f"### Linear-Gaussian bias at higher power (R = {args.lg_bias})\n")
+        print("\n".join(rows) + "\n")
     print(f"float64 GEMM rate at the end: {gemm_gflops():.2f} Gflop/s")
     print(f"wall time: {time.perf_counter() - start:.0f} s")
 
