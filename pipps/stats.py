@@ -67,7 +67,7 @@ def replicate_state(
 ) -> EstimatorState:
     """The :class:`EstimatorState` a replicate starts from, from keys independent of its estimate."""
     state = init_estimator_state(k_state, policy, model, task=task, config=config, estimator=estimator)
-    if estimator.total_propagation and estimator.k_lr == "previous":
+    if estimator.total_propagation and estimator.needs_previous_k:
         state, _ = estimate(k_earlier, state, policy, model, task=task, config=config, estimator=estimator)
     return state
 

@@ -8,7 +8,12 @@ on the pathwise part — and mixes gradients and messages with it.
 * :func:`single`: one part, taken as it is (``k_LR`` reported as 0 for RP, 1 for LR).
 * :func:`inverse_variance` and :func:`robust`: total propagation of a pathwise and an LR part, the
   weight of this batch from the rule below and the weight used from ``k_lr``: "batch" (the thesis),
-  "previous" (the previous iteration's batch weight; this batch's on the first) or a fixed number.
+  "previous" (the previous iteration's batch weight; this batch's on the first) or a fixed number;
+  and the rules of issue 20 (docs/estimators.md, "Choosing k_LR"): "leave_one_out" and "split"
+  (a weight per particle from the other particles of this batch: particle i's from the other P − 1,
+  or from the other half) and "guarded" (the previous weight, but 1 where this batch's weight is
+  above a threshold). ``"cross_fit"`` (exactly unbiased, two half-batch sweeps each) is not a
+  weight source but a sweep schedule: :mod:`~pipps.propagation.cross_fit`.
 
 * ``inverse_variance`` (thesis Alg. 5): ``k = σ²_RP / (σ²_RP + σ²_LR)`` with ``σ²`` the trace of the
   across-particle variance of the per-particle policy-parameter gradients. Guards: both zero → ½;
@@ -29,7 +34,8 @@ from pipps.propagation.parts import LIKELIHOOD_RATIO
 from pipps.propagation.strategy import strategy
 
 COMBINERS = ("inverse_variance", "robust")
-K_SOURCES = ("batch", "previous")
+K_SOURCES = ("batch", "previous", "leave_one_out", "split", "guarded")
+GUARD_THRESHOLD = 0.99  # "guarded": k_LR = 1 where this batch's weight says σ²_RP > 99 σ²_LR
 
 
 def variance_trace(g: jax.Array) -> jax.Array:
@@ -72,22 +78,85 @@ def robust_k(
 
 
 def mix(k: jax.Array, lr: jax.Array, rp: jax.Array) -> jax.Array:
-    """k·lr + (1 − k)·rp, exactly lr at k = 1 and exactly rp at k = 0 even if the other is not finite."""
+    """k·lr + (1 − k)·rp, exactly lr at k = 1 and exactly rp at k = 0 even if the other is not finite.
+
+    ``k`` is a scalar or one weight per particle, shape (P, 1) against (P, n)."""
     return jnp.where(k == 1.0, lr, jnp.where(k == 0.0, rp, k * lr + (1.0 - k) * rp))
+
+
+class OthersStatistics(NamedTuple):
+    """Per-particle statistics of the *other* particles' gradients, each with a leading axis P."""
+
+    var: jax.Array  # (P,) trace of the variance (ddof 1) over the others
+    mean: jax.Array  # (P, n) mean over the others
+    count: int  # how many others each particle's statistics use
+
+
+def leave_one_out_statistics(g: jax.Array) -> OthersStatistics:
+    """trace Var and mean over j ≠ i for every i, in O(P·n) from one centred sum of squares.
+
+    ``SS_{−i} = SS − P/(P−1)·‖g_i − ḡ‖²`` (the exact downdate of the centred sum of squares). It
+    cancels catastrophically only for the particle that dominates SS; that particle's statistics
+    are computed directly over the others (one more masked pass). Needs P ≥ 3.
+    """
+    P = g.shape[0]
+    if P < 3:
+        raise ValueError(f"leave-one-out variances need at least 3 particles, got {P}")
+    mean = jnp.mean(g, axis=0)
+    dev2 = jnp.sum((g - mean) ** 2, axis=1)
+    top = jnp.argmax(jnp.where(jnp.isnan(dev2), jnp.inf, dev2))
+    others = (jnp.arange(P) != top)[:, None]
+    mean_top = jnp.sum(jnp.where(others, g, 0.0), axis=0) / (P - 1)
+    ss_top = jnp.sum(jnp.where(others, (g - mean_top) ** 2, 0.0))
+    ss = jnp.sum(dev2) - P / (P - 1) * dev2
+    ss = jnp.where(others[:, 0], jnp.maximum(ss, 0.0), ss_top)
+    means = jnp.where(others, (P * mean - g) / (P - 1), mean_top)
+    return OthersStatistics(ss / (P - 2), means, P - 1)
+
+
+def split_statistics(g: jax.Array) -> OthersStatistics:
+    """Each particle gets the statistics of the other half: halves by parity of the index (i mod 2)."""
+    P = g.shape[0]
+    if P < 4:
+        raise ValueError(f"split-batch variances need at least 4 particles, got {P}")
+    half = jnp.arange(P) % 2
+    stats = []
+    for h in (0, 1):
+        sel = (half == h)[:, None]
+        n = (P + 1 - h) // 2
+        m = jnp.sum(jnp.where(sel, g, 0.0), axis=0) / n
+        v = jnp.sum(jnp.where(sel, (g - m) ** 2, 0.0)) / (n - 1)
+        stats.append((v, m, n))
+    (v0, m0, n0), (v1, m1, n1) = stats
+    other_is_1 = (half == 0)
+    var = jnp.where(other_is_1, v1, v0)
+    means = jnp.where(other_is_1[:, None], m1, m0)
+    return OthersStatistics(var, means, min(n0, n1))
 
 
 class Combined(NamedTuple):
     """One step's combination of the gradient parts."""
 
-    k: jax.Array  # the weight used on the LR part
+    k: jax.Array  # the weight used on the LR part (its mean over particles for a per-particle weight)
     k_batch: jax.Array  # the weight this batch's statistics give (what "previous" reads next time)
     variances: tuple  # σ² = trace Var_i[g_{i,t}] of each part, in the parts' order
     gradient: jax.Array  # (P, n_θ) each particle's contribution at this step
     message: jax.Array | None  # (P, D) ∂G_i/∂x_{i,t−1} passed back; None where no part reads it
 
 
+class _ScalarSource:
+    """A source whose weight is one number per step, chosen from this batch's and the previous
+    iteration's batch weights."""
+
+    uses_previous_k = False  # reads the previous iteration's weight (the state must carry one)
+
+    def weight(self, rule, g_rp, g_lr, k_batch, k_previous, has_previous):
+        del rule, g_rp, g_lr
+        return self.choose(k_batch, k_previous, has_previous)
+
+
 @strategy
-class BatchWeight:
+class BatchWeight(_ScalarSource):
     """k_LR from this batch's variances (the thesis, Alg. 5; biased, estimators.md §4)."""
 
     k_lr = "batch"
@@ -98,17 +167,18 @@ class BatchWeight:
 
 
 @strategy
-class PreviousWeight:
+class PreviousWeight(_ScalarSource):
     """k_LR from the previous optimizer iteration's batch, this batch's on the first (estimators.md §4)."""
 
     k_lr = "previous"
+    uses_previous_k = True
 
     def choose(self, k_batch, k_previous, has_previous):
         return jnp.where(has_previous, k_previous, k_batch)
 
 
 @strategy(traced=("k",))
-class FixedWeight:
+class FixedWeight(_ScalarSource):
     """A fixed k_LR (0 is RP, 1 is LR); a traced number."""
 
     k: float
@@ -122,6 +192,57 @@ class FixedWeight:
         return jnp.asarray(self.k, dtype=k_batch.dtype)
 
 
+@strategy(traced=("threshold",))
+class GuardedWeight(_ScalarSource):
+    """The previous iteration's k_LR, but 1 (LR only) at a step where this batch's weight is at or
+    above ``threshold`` — a batch whose pathwise spread is far beyond its LR spread (heavy tails).
+
+    Biased only through the switch (estimators.md, "Choosing k_LR"): its bias is
+    ``E[(1 − k_prev)·1{switch}·(γ^LR − γ^RP)]``, measured, not bounded a priori.
+    """
+
+    threshold: float = GUARD_THRESHOLD
+
+    k_lr = "guarded"
+    uses_previous_k = True
+
+    def choose(self, k_batch, k_previous, has_previous):
+        k = jnp.where(has_previous, k_previous, k_batch)
+        return jnp.where(k_batch >= self.threshold, jnp.ones_like(k), k)
+
+
+class _OthersSource:
+    """A weight per particle from the other particles' per-step θ-gradients (this batch only)."""
+
+    uses_previous_k = False
+
+    def weight(self, rule, g_rp, g_lr, k_batch, k_previous, has_previous):
+        del k_batch, k_previous, has_previous
+        rp, lr_ = self.statistics(g_rp), self.statistics(g_lr)
+        one = lambda vr, vl, mr, ml: rule.batch_weight(vr, vl, mr, ml, rp.count)  # noqa: E731
+        return jax.vmap(one)(rp.var, lr_.var, rp.mean, lr_.mean)
+
+
+@strategy
+class LeaveOneOutWeight(_OthersSource):
+    """Particle i's k_LR from the other P − 1 particles' variances (approximately unbiased)."""
+
+    k_lr = "leave_one_out"
+
+    def statistics(self, g):
+        return leave_one_out_statistics(g)
+
+
+@strategy
+class SplitWeight(_OthersSource):
+    """Particle i's k_LR from the other half's variances, halves by parity (approximately unbiased)."""
+
+    k_lr = "split"
+
+    def statistics(self, g):
+        return split_statistics(g)
+
+
 @strategy
 class Single:
     """One gradient part, taken as it is."""
@@ -129,6 +250,7 @@ class Single:
     name = "single"
     num_parts = 1
     k_lr = None
+    uses_previous_k = False
 
     def combine(self, kinds, g, messages, k_previous, has_previous) -> Combined:
         del k_previous, has_previous
@@ -136,16 +258,20 @@ class Single:
         return Combined(k, k, (variance_trace(g[0]),), g[0], None if messages is None else messages[0])
 
 
+Source = BatchWeight | PreviousWeight | FixedWeight | GuardedWeight | LeaveOneOutWeight | SplitWeight
+
+
 def _total_propagation(rule, g, messages, k_previous, has_previous) -> Combined:
     """Steps 5–7 of estimators.md §4 for parts (pathwise, LR); a non-finite part gets no weight."""
     g_rp, g_lr = g[0], g[1]
     var_rp, var_lr = variance_trace(g_rp), variance_trace(g_lr)
     k_batch = rule.batch_weight(var_rp, var_lr, g_rp.mean(0), g_lr.mean(0), g_rp.shape[0])
-    k = rule.source.choose(k_batch, k_previous, has_previous)
+    k = rule.source.weight(rule, g_rp, g_lr, k_batch, k_previous, has_previous)
     k = jnp.where(jnp.isfinite(var_rp), k, 1.0)
     k = jnp.where(jnp.isfinite(var_lr), k, jnp.where(jnp.isfinite(var_rp), 0.0, k))
-    message = None if messages is None else mix(k, messages[1], messages[0])
-    return Combined(k, k_batch, (var_rp, var_lr), mix(k, g_lr, g_rp), message)
+    kp = k[:, None] if k.ndim == 1 else k  # one weight per particle, or one for the step
+    message = None if messages is None else mix(kp, messages[1], messages[0])
+    return Combined(jnp.mean(k), k_batch, (var_rp, var_lr), mix(kp, g_lr, g_rp), message)
 
 
 class _TotalPropagationCombiner:
@@ -158,6 +284,10 @@ class _TotalPropagationCombiner:
     def k_lr(self):
         return self.source.k_lr
 
+    @property
+    def uses_previous_k(self) -> bool:
+        return self.source.uses_previous_k
+
     def combine(self, kinds, g, messages, k_previous, has_previous) -> Combined:
         del kinds
         return _total_propagation(self, g, messages, k_previous, has_previous)
@@ -167,7 +297,7 @@ class _TotalPropagationCombiner:
 class InverseVariance(_TotalPropagationCombiner):
     """Total propagation with the inverse-variance weight (thesis Alg. 5; estimators.md §4)."""
 
-    source: BatchWeight | PreviousWeight | FixedWeight
+    source: Source
 
     name = "inverse_variance"
 
@@ -182,7 +312,7 @@ class Robust(_TotalPropagationCombiner):
 
     gamma: float
     z: float
-    source: BatchWeight | PreviousWeight | FixedWeight
+    source: Source
 
     name = "robust"
 
@@ -190,13 +320,20 @@ class Robust(_TotalPropagationCombiner):
         return robust_k(var_rp, var_lr, mean_rp, mean_lr, num_particles, self.gamma, self.z)
 
 
-def weight_source(k_lr: str | float = "previous") -> BatchWeight | PreviousWeight | FixedWeight:
-    """Where total propagation's k_LR comes from: "batch", "previous" or a number in [0, 1]."""
+_NAMED_SOURCES = {
+    "batch": BatchWeight,
+    "previous": PreviousWeight,
+    "leave_one_out": LeaveOneOutWeight,
+    "split": SplitWeight,
+    "guarded": GuardedWeight,
+}
+
+
+def weight_source(k_lr: str | float = "previous") -> Source:
+    """Where total propagation's k_LR comes from: one of :data:`K_SOURCES` or a number in [0, 1]."""
     if isinstance(k_lr, str):
-        if k_lr == "batch":
-            return BatchWeight()
-        if k_lr == "previous":
-            return PreviousWeight()
+        if k_lr in _NAMED_SOURCES:
+            return _NAMED_SOURCES[k_lr]()
         raise ValueError(f"k_lr must be one of {K_SOURCES} or a number in [0, 1], got {k_lr!r}")
     if not 0.0 <= float(k_lr) <= 1.0:
         raise ValueError(f"a fixed k_lr must lie in [0, 1], got {k_lr}")

@@ -108,6 +108,11 @@ class Estimator:
         return None
 
     @property
+    def needs_previous_k(self) -> bool:
+        """The combiner reads the previous iteration's per-step k_LR ("previous", "guarded")."""
+        return self.combiner.uses_previous_k
+
+    @property
     def k_lr(self) -> str | float | None:
         """Where total propagation's weight comes from ("batch", "previous" or a number); None for one part."""
         return self.combiner.k_lr
@@ -212,8 +217,16 @@ def _check_name(name: str) -> None:
 
 
 def estimator(name: str, **settings) -> Estimator:
-    """A named estimator with the library defaults, e.g. ``estimator("tp", k_lr="batch")``."""
+    """A named estimator with the library defaults, e.g. ``estimator("tp", k_lr="batch")``.
+
+    ``k_lr="cross_fit"`` gives a :class:`~pipps.propagation.cross_fit.CrossFitted` estimator (a
+    schedule of half-batch sweeps, not a weight source): exactly unbiased with weights from this batch.
+    """
     _check_name(name)
+    if settings.get("k_lr") == "cross_fit":
+        from pipps.propagation.cross_fit import cross_fitted  # it builds on this module
+
+        return cross_fitted(with_settings(name, ESTIMATORS[name], **{**settings, "k_lr": "batch"}))
     return with_settings(name, ESTIMATORS[name], **settings)
 
 

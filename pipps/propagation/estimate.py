@@ -20,6 +20,7 @@ from pipps.particles.forward import RolloutConfig, particle_rollout, sample_nois
 from pipps.precision import require_float64
 from pipps.propagation.config import Estimator
 from pipps.propagation.backward import PreviousIteration, StepDiagnostics, backward_sweep, mean_returns
+from pipps.propagation.cross_fit import CrossFitted
 from pipps.tasks.base import Task
 
 
@@ -70,7 +71,7 @@ def estimate(
     *,
     task: Task,
     config: RolloutConfig,
-    estimator: Estimator,
+    estimator: Estimator | CrossFitted,
 ) -> tuple[EstimatorState, Estimate]:
     """The next state; and the objective, gradient estimate, V[g] and per-step diagnostics."""
     require_float64("pipps.propagation.estimate")
@@ -78,7 +79,10 @@ def estimate(
         raise ValueError("Gaussian resampling (GR) is a pathwise method; use it with the 'rp' estimator")
     noise = sample_noise(key, task, config)
     record = particle_rollout(task, policy, model, noise, config, jacobian=True)
-    out = backward_sweep(task, policy, record, config, estimator, state.previous())
+    if isinstance(estimator, CrossFitted):  # a schedule of sweeps, not a piece of one
+        out = estimator.sweep(task, policy, record, config, state.previous())
+    else:
+        out = backward_sweep(task, policy, record, config, estimator, state.previous())
     contrib = out.contributions
     P = contrib.shape[0]
     _, unravel = ravel_pytree(policy)
