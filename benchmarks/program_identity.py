@@ -7,9 +7,12 @@ normalised. Two code versions that produce the same file run the same machine pr
 is slower; the printed objective and first gradient entry show the numbers too. It runs on code
 before and after issue 19's change of ``estimate``'s return order.
 
-    PYTHONPATH=OLD_TREE python benchmarks/program_identity.py FILE.h5 TRIAL old.txt
-    PYTHONPATH=NEW_TREE python benchmarks/program_identity.py FILE.h5 TRIAL new.txt
+    PYTHONPATH=OLD_TREE taskset -c 0 python benchmarks/program_identity.py FILE.h5 TRIAL old.txt
+    PYTHONPATH=NEW_TREE taskset -c 0 python benchmarks/program_identity.py FILE.h5 TRIAL new.txt
     cmp old.txt new.txt
+
+Pin both to the same number of CPUs: XLA partitions loops by its thread count, which changes the
+program (and its rounding).
 """
 
 from __future__ import annotations
