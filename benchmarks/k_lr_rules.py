@@ -4,7 +4,9 @@ One table, one row per (cell, rule). Cells: the kicked rotor of :mod:`pipps.syst
 ("chaotic" K = 2 and "smooth" K = 0.1, T = 30; docs/estimator-variance.md) at each P, and the
 linear-Gaussian reference system (noise 0.3, saturating cost, T = 10) whose exact gradient is known.
 Rules: RP and BIW-LR (the parts), TP with k_LR "previous" (library default), "batch" (thesis),
-"leave_one_out", "split", "cross_fit", "guarded", and the robust combiner (γ = 1, z = 2, batch).
+"leave_one_out", "split", "cross_fit", "guarded", the robust combiner (γ = 1, z = 2, batch), and
+"previous" and "leave_one_out" with ``messages="pathwise"`` (k mixes the contributions only; the
+pathwise message is passed back).
 
 Per cell, R replicates of every rule on common random numbers
 (:func:`~pipps.stats.paired_replicate_gradients`). Columns:
@@ -47,7 +49,10 @@ from jax.flatten_util import ravel_pytree
 
 import pipps
 from pipps.particles.forward import RolloutConfig
-from pipps.propagation.config import estimator
+from pipps.propagation.combine import inverse_variance
+from pipps.propagation.config import compose, estimator
+from pipps.propagation.cost_terms import plain_costs
+from pipps.propagation.parts import biw_lr, pathwise
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.stats import log_variance_ratio, paired_replicate_gradients, trace_variance
 from pipps.systems import exact_objective, reference_system
@@ -65,6 +70,8 @@ RULES = {
     "TP cross-fit (LOO pilot)": estimator("tp", k_lr="cross_fit"),
     "TP guarded": estimator("tp", k_lr="guarded"),
     "TP robust γ=1 (batch)": estimator("tp", combiner="robust", robust_gamma=1.0, k_lr="batch"),
+    "TP previous, RP messages": compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance("previous", "pathwise")),
+    "TP leave-one-out, RP messages": compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance("leave_one_out", "pathwise")),
 }
 
 

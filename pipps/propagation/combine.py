@@ -35,6 +35,7 @@ from pipps.propagation.strategy import strategy
 
 COMBINERS = ("inverse_variance", "robust")
 K_SOURCES = ("batch", "previous", "leave_one_out", "split", "guarded")
+MESSAGES = ("mixed", "pathwise")  # what total propagation passes back: λ = k γ^LR + (1 − k) γ^RP, or γ^RP
 GUARD_THRESHOLD = 0.99  # "guarded": k_LR = 1 where this batch's weight says σ²_RP > 99 σ²_LR
 
 
@@ -270,7 +271,12 @@ def _total_propagation(rule, g, messages, k_previous, has_previous) -> Combined:
     k = jnp.where(jnp.isfinite(var_rp), k, 1.0)
     k = jnp.where(jnp.isfinite(var_lr), k, jnp.where(jnp.isfinite(var_rp), 0.0, k))
     kp = k[:, None] if k.ndim == 1 else k  # one weight per particle, or one for the step
-    message = None if messages is None else mix(kp, messages[1], messages[0])
+    if messages is None:
+        message = None
+    elif rule.messages == "pathwise":  # the weight mixes the step's contributions only
+        message = messages[0]
+    else:
+        message = mix(kp, messages[1], messages[0])
     return Combined(jnp.mean(k), k_batch, (var_rp, var_lr), mix(kp, g_lr, g_rp), message)
 
 
@@ -298,6 +304,7 @@ class InverseVariance(_TotalPropagationCombiner):
     """Total propagation with the inverse-variance weight (thesis Alg. 5; estimators.md §4)."""
 
     source: Source
+    messages: str = "mixed"  # "mixed" (Alg. 5) or "pathwise" (pass γ^RP back; mix the contributions only)
 
     name = "inverse_variance"
 
@@ -313,6 +320,7 @@ class Robust(_TotalPropagationCombiner):
     gamma: float
     z: float
     source: Source
+    messages: str = "mixed"
 
     name = "robust"
 
@@ -345,9 +353,17 @@ def single() -> Single:
     return Single()
 
 
-def inverse_variance(k_lr: str | float = "previous") -> InverseVariance:
-    """Total propagation's inverse-variance combiner (thesis Alg. 5) with the given k_LR source."""
-    return InverseVariance(weight_source(k_lr))
+def inverse_variance(k_lr: str | float = "previous", messages: str = "mixed") -> InverseVariance:
+    """Total propagation's inverse-variance combiner (thesis Alg. 5) with the given k_LR source.
+
+    ``messages="pathwise"`` passes the pathwise message γ^RP back instead of λ = k γ^LR + (1 − k) γ^RP
+    and uses k only for the step's contribution: no LR noise enters the earlier pathwise terms
+    (unbiased under the same condition on k; docs/estimators.md, "Choosing k_LR"). A non-finite
+    pathwise message is then passed back as it is, and the update refuses the estimate.
+    """
+    if messages not in MESSAGES:
+        raise ValueError(f"messages must be one of {MESSAGES}, got {messages!r}")
+    return InverseVariance(weight_source(k_lr), messages)
 
 
 def robust(gamma: float = float("inf"), z: float = 2.0, k_lr: str | float = "previous") -> Robust:
