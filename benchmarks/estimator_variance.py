@@ -6,7 +6,7 @@ zero epistemic variance. For each setting and P, R replicates of every estimator
 random numbers (:func:`~pipps.stats.paired_replicate_gradients`: BIW-LR's "previous"
 baseline from an independent extra rollout, TP's "previous" k_LR from an independent earlier
 estimate). Variance = trace of the covariance over replicates. Ratios come with a 95 % interval
-from the delta method on paired replicates (:func:`~pipps.systems.chaotic.log_variance_ratio`).
+from the delta method on paired replicates (:func:`~pipps.stats.log_variance_ratio`).
 
 Printed (markdown): the finite-time Lyapunov exponents; per setting, the variance table with
 TP/BIW-LR; the share of TP's variance owed to its single largest replicate (heavy tails); the
@@ -29,7 +29,7 @@ import numpy as np
 import pipps
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import estimator
-from pipps.stats import log_variance_ratio, paired_replicate_gradients, trace_variance
+from pipps.stats import paired_replicate_gradients, trace_variance, variance_ratio_text
 from pipps.systems.chaotic import SETTINGS, finite_time_lyapunov, kicked_rotor_system
 
 pipps.enable_float64()
@@ -55,11 +55,6 @@ def run_replicates(setting: str, P: int, R: int, seed: int, estimators: dict):
     out = run(jax.random.PRNGKey(seed))
     return {n: np.asarray(g) for n, g in out.grad.items()}, {n: np.asarray(k) for n, k in out.k_lr.items()}
 
-
-def ratio_cell(g_a, g_b) -> str:
-    log_ratio, se = log_variance_ratio(g_a, g_b)
-    lo, hi = np.exp(log_ratio - 1.96 * se), np.exp(log_ratio + 1.96 * se)
-    return f"{np.exp(log_ratio):.3g} [{lo:.3g}, {hi:.3g}]"
 
 
 def top_share(g) -> float:
@@ -95,7 +90,7 @@ def variance_tables(setting: str, particles, replicates, seed: int) -> tuple[lis
         R = replicates(P)
         g, k = run_replicates(setting, P, R, seed + P, ESTIMATORS)
         cells = [str(P), str(R), *(f"{trace_variance(g[n]):.3g}" for n in names)]
-        cells += [ratio_cell(g["TP"], g["BIW-LR"]), ratio_cell(g["TP (batch k)"], g["BIW-LR"]), ratio_cell(g["BIW-LR"], g["plain LR"])]
+        cells += [variance_ratio_text(g["TP"], g["BIW-LR"]), variance_ratio_text(g["TP (batch k)"], g["BIW-LR"]), variance_ratio_text(g["BIW-LR"], g["plain LR"])]
         cells += [f"{top_share(g['TP']):.2f}", bias_cell(g["TP (batch k)"], g["BIW-LR"])]
         var_lines.append("| " + " | ".join(cells) + " |")
         k_profiles[P] = (k["TP"].mean(0), k["TP (batch k)"].mean(0))

@@ -54,7 +54,7 @@ from pipps.propagation.config import compose, estimator
 from pipps.propagation.cost_terms import plain_costs
 from pipps.propagation.parts import biw_lr, pathwise
 from pipps.propagation.estimate import estimate, init_estimator_state
-from pipps.stats import log_variance_ratio, paired_replicate_gradients, trace_variance
+from pipps.stats import paired_replicate_gradients, trace_variance, variance_ratio_text
 from pipps.systems import exact_objective, reference_system
 from pipps.systems.chaotic import kicked_rotor_system
 
@@ -126,11 +126,6 @@ def replicates(name: str, P: int, R: int, seed: int):
     return {n: np.asarray(g) for n, g in out.grad.items()}, {n: np.asarray(k) for n, k in out.k_lr.items()}
 
 
-def ratio_cell(g_a, g_b) -> str:
-    log_ratio, se = log_variance_ratio(g_a, g_b)
-    lo, hi = np.exp(log_ratio - 1.96 * se), np.exp(log_ratio + 1.96 * se)
-    return f"{np.exp(log_ratio):.3g} [{lo:.3g}, {hi:.3g}]"
-
 
 def bias(g, reference) -> tuple[np.ndarray, float, float]:
     """(bias vector, relative norm, max |z|) against an exact vector or paired reference replicates."""
@@ -161,7 +156,7 @@ def cell_rows(name: str, P: int, R: int, seed: int, gflops: float, timing: bool)
         else:
             b, rel, zmax = bias(g[rule], reference)
             b_cell, mse = f"{rel:.3f} ({zmax:.1f})", v + float(b @ b)
-        ratio = "1" if rule == parts else ratio_cell(g[rule], g[parts])
+        ratio = "1" if rule == parts else variance_ratio_text(g[rule], g[parts])
         s = seconds_per_eval(name, P, est) if timing else float("nan")
         cells = [name, str(P), str(R), rule, f"{v:.3g}", ratio, b_cell, f"{mse:.3g}", f"{np.mean(k[rule]):.2f}",
                  f"{s:.4f}", f"{s * gflops:.3g}", f"{mse * s:.3g}"]

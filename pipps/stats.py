@@ -148,3 +148,11 @@ def log_variance_ratio(g_a, g_b) -> tuple[float, float]:
     v_a, v_b = d_a.mean(), d_b.mean()
     influence = d_a / v_a - d_b / v_b
     return float(np.log(v_a / v_b)), float(np.std(influence, ddof=1) / np.sqrt(R))
+
+
+
+def variance_ratio_text(g_a, g_b) -> str:
+    """``"r [lo, hi]"``: the variance ratio of :func:`log_variance_ratio` with its 95 % interval, for tables."""
+    log_ratio, se = log_variance_ratio(g_a, g_b)
+    lo, hi = np.exp(log_ratio - 1.96 * se), np.exp(log_ratio + 1.96 * se)
+    return f"{np.exp(log_ratio):.3g} [{lo:.3g}, {hi:.3g}]"
