@@ -8,19 +8,21 @@ pathwise derivative of the return with respect to the particle, ``∂G_i/∂x_{i
 1. asks its cost terms for ``c_{i,t}`` and ``∂c_i/∂x_{i,t}`` and sets ``G_{i,t} = G_{i,t+1} + c_{i,t}``
    (:mod:`~pipps.propagation.cost_terms`);
 2. asks each of its parts for a ζ-cotangent ``γ_{i,t}`` (:mod:`~pipps.propagation.parts`);
-3. carries every γ to θ through the direct path ``∂ζ_{i,t}/∂u_{i,t−1} · ∂u_{i,t−1}/∂θ`` — per
-   particle, with the model Jacobians recorded by the forward pass and one VJP of the (cheap) map
-   ``x ↦ z = [x̃[I]; π(x̃[P]; θ)]`` for all parts at once, which also yields each part's message
-   ``∂G/∂x_{i,t−1}`` when a pathwise part reads it;
-4. hands the per-particle θ-gradients and messages to its combiner, which chooses ``k_LR`` and
-   returns the step's contribution and the message ``λ`` passed back
-   (:mod:`~pipps.propagation.combine`).
+3. turns every γ into a cotangent on the GP input ``z = [x̃[I]; π(x̃[P]; θ)]`` with the model
+   Jacobians the forward pass recorded, and hands these (:class:`~pipps.propagation.parts.PartCotangents`)
+   with the pull-back — one per-particle VJP of the (cheap) map ``x ↦ z`` for a stack of
+   cotangents, giving θ-gradients and, when a pathwise part reads them, messages ``∂G/∂x_{i,t−1}`` —
+   to its combiner;
+4. the combiner chooses ``k_LR`` and returns the step's contribution and the message ``λ`` passed
+   back (:mod:`~pipps.propagation.combine`): total propagation pulls every part back at once and
+   mixes the θ-gradients; a combiner at the action nodes mixes the z-cotangents first.
 
 The sweep itself does not depend on which estimator it runs.
 """
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -30,7 +32,7 @@ from jax.flatten_util import ravel_pytree
 from pipps.particles.forward import ParticleRecord, RolloutConfig
 from pipps.propagation.config import Estimator
 from pipps.propagation.lr import ZetaGrad
-from pipps.propagation.parts import LIKELIHOOD_RATIO, PATHWISE, StepInputs
+from pipps.propagation.parts import LIKELIHOOD_RATIO, PATHWISE, PartCotangents, StepInputs
 from pipps.tasks.base import Task
 
 
@@ -131,12 +133,11 @@ def backward_sweep(
         G = G + terms.cost
 
         inputs = StepInputs(x_t, mean, std, eps, G, b_prev, cot_x, terms.gradient)
-        gammas = [part.zeta(inputs, config) for part in est.parts]
+        gammas = tuple(part.zeta(inputs, config) for part in est.parts)
         ct_z = jnp.stack([_to_z(g, jm, js) for g in gammas])
-        g_theta, cx = _pull_back(task, policy, x_prev, ct_z, with_x=est.pathwise)
-
-        messages = None if cx is None else [cx[i] + gam.mean for i, gam in enumerate(gammas)]
-        out = est.combiner.combine(kinds, g_theta, messages, k_prev, previous.has_previous)
+        pull_back = partial(_pull_back, task, policy, x_prev, with_x=est.pathwise)
+        step_parts = PartCotangents(gammas, ct_z, task.action_dim, pull_back)
+        out = est.combiner.combine(kinds, step_parts, k_prev, previous.has_previous)
         variance = dict(zip(kinds, out.variances))
         new_cot_x = cot_x if out.message is None else out.message
 

@@ -1,9 +1,10 @@
 """Combiners: how one step's gradient parts become one contribution (estimators.md §4 steps 5–7, §9).
 
-A combiner is a strategy piece with ``combine(kinds, g, messages, k_previous, has_previous) ->
-Combined``: from the parts' per-particle θ-gradients (and, where a pathwise part is present, the
-x-cotangents each part would pass back) it chooses ``k_LR`` — the weight on the LR part, ``1 − k_LR``
-on the pathwise part — and mixes gradients and messages with it.
+A combiner is a strategy piece with ``combine(kinds, parts, k_previous, has_previous) -> Combined``:
+from the parts' cotangents (:class:`~pipps.propagation.parts.PartCotangents`: each part's
+cotangent on the GP input z and the pull-back to θ and x) it chooses ``k_LR`` — the weight on the LR
+part, ``1 − k_LR`` on the pathwise part — and mixes gradients and messages with it. ``weight_shape``
+is the shape of one step's weight that the next iteration's "previous" rule reads.
 
 * :func:`single`: one part, taken as it is (``k_LR`` reported as 0 for RP, 1 for LR).
 * :func:`inverse_variance` and :func:`robust`: total propagation of a pathwise and an LR part, the
@@ -253,8 +254,13 @@ class Single:
     k_lr = None
     uses_previous_k = False
 
-    def combine(self, kinds, g, messages, k_previous, has_previous) -> Combined:
+    def weight_shape(self, num_actions: int) -> tuple:
+        del num_actions
+        return ()
+
+    def combine(self, kinds, parts, k_previous, has_previous) -> Combined:
         del k_previous, has_previous
+        g, messages = parts.gradients_and_messages()
         k = jnp.asarray(1.0 if kinds[0] == LIKELIHOOD_RATIO else 0.0, g.dtype)
         return Combined(k, k, (variance_trace(g[0]),), g[0], None if messages is None else messages[0])
 
@@ -286,6 +292,10 @@ class _TotalPropagationCombiner:
 
     num_parts = 2
 
+    def weight_shape(self, num_actions: int) -> tuple:
+        del num_actions
+        return ()  # one weight per step
+
     @property
     def k_lr(self):
         return self.source.k_lr
@@ -294,8 +304,9 @@ class _TotalPropagationCombiner:
     def uses_previous_k(self) -> bool:
         return self.source.uses_previous_k
 
-    def combine(self, kinds, g, messages, k_previous, has_previous) -> Combined:
+    def combine(self, kinds, parts, k_previous, has_previous) -> Combined:
         del kinds
+        g, messages = parts.gradients_and_messages()
         return _total_propagation(self, g, messages, k_previous, has_previous)
 
 

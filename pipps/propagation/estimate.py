@@ -28,7 +28,7 @@ class EstimatorState(NamedTuple):
     """What an estimator carries between optimizer iterations (each (T,) unless noted)."""
 
     baseline: jax.Array  # mean return-to-go per step of the previous iteration (or the extra rollout)
-    k_lr: jax.Array  # the previous iteration's per-step batch weight
+    k_lr: jax.Array  # the previous iteration's per-step batch weight, (T,) or (T, *combiner.weight_shape)
     has_previous: jax.Array  # bool scalar: False until the first estimate
 
     def previous(self) -> PreviousIteration:
@@ -60,7 +60,8 @@ def init_estimator_state(
         baseline = mean_returns(task, record, estimator)
     else:
         baseline = jnp.zeros(T)
-    return EstimatorState(baseline, jnp.zeros(T), jnp.asarray(False))
+    k_shape = (T, *estimator.combiner.weight_shape(task.action_dim))  # one weight per step, or per node
+    return EstimatorState(baseline, jnp.zeros(k_shape), jnp.asarray(False))
 
 
 def estimate(

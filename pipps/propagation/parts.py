@@ -15,7 +15,7 @@ The sweep carries every part's γ to θ through the same direct path and hands t
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 
@@ -39,6 +39,22 @@ class StepInputs(NamedTuple):
     previous_baseline: jax.Array  # b_t of the previous iteration, scalar
     carried: jax.Array  # ∂G_i/∂x_{i,t} passed back from step t+1, (P, D)
     cost_gradient: jax.Array | None  # the cost terms' ∂c_i/∂x_i, (P, D)
+
+
+class PartCotangents(NamedTuple):
+    """One step's gradient parts as the combiner receives them (in the parts' order)."""
+
+    zeta: tuple  # each part's ζ-cotangent γ_{i,t} (ZetaGrad of (P, D) arrays)
+    z: jax.Array  # (K, P, Dz) each part's cotangent on the GP input z = [x̃[I]; u], u last
+    num_actions: int  # the last num_actions entries of z are the action u_{t−1} (static)
+    pull_back: Callable  # (K', P, Dz) z-cotangents → (θ-cotangents (K', P, n_θ), x-cotangents (K', P, D) or None)
+
+    def gradients_and_messages(self):
+        """Every part pulled back at once: θ-gradients (K, P, n_θ) and, where a pathwise part reads
+        them, the messages ``∂G/∂x_{i,t−1} = (∂z/∂x)ᵀ c_z + γ_μ`` of each part (else None)."""
+        g, cx = self.pull_back(self.z)
+        messages = None if cx is None else [cx[i] + gam.mean for i, gam in enumerate(self.zeta)]
+        return g, messages
 
 
 def rp_zeta(a: jax.Array, mean: jax.Array, std: jax.Array, eps: jax.Array, config: RolloutConfig) -> ZetaGrad:
