@@ -61,6 +61,9 @@ def one(system, est, key=3):
         (estimator("tp", combiner="robust", robust_gamma=0.5), compose(plain_costs(), pathwise(), biw_lr(), combiner=robust(0.5))),
         (thesis_estimator("tp", combiner="robust", robust_z=1.0), compose(plain_costs(), pathwise(), biw_lr("thesis"), combiner=robust(z=1.0, k_lr="batch"))),
         (thesis_estimator("tp", k_lr=0.0), compose(plain_costs(), pathwise(), biw_lr("thesis"), combiner=inverse_variance(0.0))),
+        (estimator("tp", messages="pathwise"), compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance("previous", "pathwise"))),
+        (thesis_estimator("tp", messages="pathwise"), compose(plain_costs(), pathwise(), biw_lr("thesis"), combiner=inverse_variance("batch", "pathwise"))),
+        (estimator("tp", combiner="robust", messages="pathwise"), compose(plain_costs(), pathwise(), biw_lr(), combiner=robust(messages="pathwise"))),
     ],
 )
 def test_names_and_settings_are_the_compositions_they_claim(built, composed):
@@ -92,6 +95,9 @@ def test_the_descriptive_views_follow_the_pieces():
         (lambda: estimator("tp", weighting="uniform"), "weighting must be one of"),
         (lambda: estimator("tp", shaping=True), "unknown estimator settings"),
         (lambda: estimator("tp", k_lr="soon"), "k_lr must be one of"),
+        (lambda: estimator("tp", messages="lr"), "messages must be one of"),
+        (lambda: estimator("tp", combiner="robust", messages="lr"), "messages must be one of"),
+        (lambda: estimator("rp", messages="pathwise"), "only apply to total propagation"),
         (lambda: estimator("tp", combiner="robust", robust_gamma=-1.0), "robust_gamma"),
         (lambda: thesis_estimator("nope"), "unknown estimator"),
         (lambda: compose(plain_costs()), "needs a gradient part"),

@@ -377,10 +377,13 @@ def inverse_variance(k_lr: str | float = "previous", messages: str = "mixed") ->
     return InverseVariance(weight_source(k_lr), messages)
 
 
-def robust(gamma: float = float("inf"), z: float = 2.0, k_lr: str | float = "previous") -> Robust:
-    """The robust combiner (estimators.md §9): bias bound ``γ ≥ 0`` (∞: inverse variance), confidence ``z ≥ 0``."""
+def robust(gamma: float = float("inf"), z: float = 2.0, k_lr: str | float = "previous", messages: str = "mixed") -> Robust:
+    """The robust combiner (estimators.md §9): bias bound ``γ ≥ 0`` (∞: inverse variance), confidence
+    ``z ≥ 0``; ``messages`` as for :func:`inverse_variance`."""
+    if messages not in MESSAGES:
+        raise ValueError(f"messages must be one of {MESSAGES}, got {messages!r}")
     if not float(gamma) >= 0.0:
         raise ValueError(f"robust_gamma must be >= 0 (inf allowed), got {gamma}")
     if not 0.0 <= float(z) < float("inf"):
         raise ValueError(f"robust_z must be finite and >= 0, got {z}")
-    return Robust(float(gamma), float(z), weight_source(k_lr))
+    return Robust(float(gamma), float(z), weight_source(k_lr), messages)

@@ -148,8 +148,8 @@ THESIS_ESTIMATORS = {
 
 NAMED = tuple(ESTIMATORS)
 
-SETTINGS = ("weighting", "baseline", "k_lr", "combiner", "robust_gamma", "robust_z")
-_COMBINER_SETTINGS = ("k_lr", "combiner", "robust_gamma", "robust_z")
+SETTINGS = ("weighting", "baseline", "k_lr", "combiner", "robust_gamma", "robust_z", "messages")
+_COMBINER_SETTINGS = ("k_lr", "combiner", "robust_gamma", "robust_z", "messages")
 
 
 def _reweighted(name: str, parts: tuple, weighting: str) -> tuple:
@@ -183,15 +183,16 @@ def _recombined(name: str, combiner, num_parts: int, settings: dict):
         raise ValueError(f"{sorted(settings)} only apply to total propagation (a pathwise and an LR part); {name!r} has one part")
     rule = settings.get("combiner", combiner.name)
     k_lr = settings.get("k_lr", combiner.k_lr)
+    messages = settings.get("messages", getattr(combiner, "messages", "mixed"))
     if rule == "robust":
         gamma = settings.get("robust_gamma", getattr(combiner, "gamma", float("inf")))
         z = settings.get("robust_z", getattr(combiner, "z", 2.0))
-        return robust(gamma, z, k_lr=k_lr)
+        return robust(gamma, z, k_lr=k_lr, messages=messages)
+    extra = sorted({"robust_gamma", "robust_z"} & set(settings))
+    if extra:
+        raise ValueError(f"{extra} belong to the robust combiner; pass combiner='robust' as well")
     if rule == "inverse_variance":
-        extra = sorted({"robust_gamma", "robust_z"} & set(settings))
-        if extra:
-            raise ValueError(f"{extra} belong to the robust combiner; pass combiner='robust' as well")
-        return inverse_variance(k_lr)
+        return inverse_variance(k_lr, messages)
     raise ValueError(f"combiner must be one of {COMBINERS}, got {rule!r}")
 
 
