@@ -34,7 +34,7 @@ import jax.numpy as jnp
 from pipps.propagation.parts import LIKELIHOOD_RATIO
 from pipps.propagation.strategy import strategy
 
-COMBINERS = ("inverse_variance", "robust")
+COMBINERS = ("inverse_variance", "robust", "action_nodes")
 K_SOURCES = ("batch", "previous", "leave_one_out", "split", "guarded")
 MESSAGES = ("mixed", "pathwise")  # what total propagation passes back: λ = k γ^LR + (1 − k) γ^RP, or γ^RP
 GUARD_THRESHOLD = 0.99  # "guarded": k_LR = 1 where this batch's weight says σ²_RP > 99 σ²_LR
@@ -339,6 +339,84 @@ class Robust(_TotalPropagationCombiner):
         return robust_k(var_rp, var_lr, mean_rp, mean_lr, num_particles, self.gamma, self.z)
 
 
+@strategy(traced=("source",))
+class ActionNodes:
+    """Total propagation at the action nodes (the idea of TPX, Parmas, Seno and Aoki 2023; derived for
+    this sweep in docs/estimators.md, "Combination at the action nodes").
+
+    Each part's cotangent on z = [x̃[I]; u] splits into a state part ``c^p_x̃`` and an action part
+    ``c^p_u``. The θ-gradient reads only the action part, so the two parts are mixed there,
+    coordinate by coordinate: ``c_u = K ⊙ c^LR_u + (1 − K) ⊙ c^RP_u`` with
+    ``K_d = σ²_{RP,d} / (σ²_{RP,d} + σ²_{LR,d})`` from the across-particle variances of ``c^p_{u,d}``
+    (action space: the cost does not grow with n_θ). The state paths of the message,
+    ``γ^p_μ + (∂x̃/∂x)ᵀ c^p_x̃``, are mixed with one weight ``k_s`` from the trace variances of the two
+    parts' state messages. One pull-back of three cotangents — the two state parts and the mixed
+    action part — gives the θ-gradient and the message
+    ``λ = k_s m^LR + (1 − k_s) m^RP + (∂u/∂x)ᵀ c_u``.
+
+    ``source`` says where every weight comes from, as in :class:`InverseVariance`, applied to each
+    action coordinate and to the state paths separately; a step's weights are ``[k_s, K_1 … K_Du]``
+    (what "previous" reads next time). With every weight 0 it is RP, with every weight 1 LR, and
+    with every weight k total propagation with k, each up to rounding (tests/test_action_nodes.py).
+    Diagnostics: ``k`` is the mean action weight, and the variances are the action cotangents'
+    (summed over coordinates), not the θ-gradients'.
+    """
+
+    source: Source
+
+    name = "action_nodes"
+    num_parts = 2
+
+    @property
+    def k_lr(self):
+        return self.source.k_lr
+
+    @property
+    def uses_previous_k(self) -> bool:
+        return self.source.uses_previous_k
+
+    def weight_shape(self, num_actions: int) -> tuple:
+        return (1 + num_actions,)  # [state paths, action coordinates]
+
+    def batch_weight(self, var_rp, var_lr, mean_rp, mean_lr, num_particles):
+        del mean_rp, mean_lr, num_particles
+        return inverse_variance_k(var_rp, var_lr)
+
+    def _weights(self, g_rp, g_lr, k_previous, has_previous):
+        """The source's weight for one node from the parts' (P, n) values there, with TP's guards."""
+        var_rp, var_lr = variance_trace(g_rp), variance_trace(g_lr)
+        k_batch = self.batch_weight(var_rp, var_lr, None, None, g_rp.shape[0])
+        k = self.source.weight(self, g_rp, g_lr, k_batch, k_previous, has_previous)
+        k = jnp.where(jnp.isfinite(var_rp), k, 1.0)
+        k = jnp.where(jnp.isfinite(var_lr), k, jnp.where(jnp.isfinite(var_rp), 0.0, k))
+        return k, k_batch, var_rp, var_lr
+
+    def combine(self, kinds, parts, k_previous, has_previous) -> Combined:
+        del kinds
+        n_u = parts.num_actions
+        ct_rp, ct_lr = parts.z[0], parts.z[1]
+        u_rp, u_lr = ct_rp[:, -n_u:], ct_lr[:, -n_u:]
+
+        def node(c_rp, c_lr, k_prev):  # one action coordinate: (P,) each
+            return self._weights(c_rp[:, None], c_lr[:, None], k_prev, has_previous)
+
+        K, K_batch, var_rp, var_lr = jax.vmap(node, in_axes=(1, 1, 0))(u_rp, u_lr, k_previous[1:])
+        K = K.T if K.ndim == 2 else K  # (P, Du) per particle, or (Du,) per coordinate
+        u_mix = mix(K, u_lr, u_rp)
+
+        def only_state(ct):
+            return ct.at[:, -n_u:].set(0.0)
+
+        stack = jnp.stack([only_state(ct_rp), only_state(ct_lr), jnp.zeros_like(ct_rp).at[:, -n_u:].set(u_mix)])
+        g, cx = parts.pull_back(stack)
+        m_rp, m_lr = cx[0] + parts.zeta[0].mean, cx[1] + parts.zeta[1].mean
+        k_s, k_s_batch, _, _ = self._weights(m_rp, m_lr, k_previous[0], has_previous)
+        k_s = k_s[:, None] if k_s.ndim == 1 else k_s
+        message = mix(k_s, m_lr, m_rp) + cx[2]
+        k_batch = jnp.concatenate([k_s_batch[None], K_batch])
+        return Combined(jnp.mean(K), k_batch, (jnp.sum(var_rp), jnp.sum(var_lr)), g[2], message)
+
+
 _NAMED_SOURCES = {
     "batch": BatchWeight,
     "previous": PreviousWeight,
@@ -375,6 +453,12 @@ def inverse_variance(k_lr: str | float = "previous", messages: str = "mixed") ->
     if messages not in MESSAGES:
         raise ValueError(f"messages must be one of {MESSAGES}, got {messages!r}")
     return InverseVariance(weight_source(k_lr), messages)
+
+
+def action_nodes(k_lr: str | float = "previous") -> ActionNodes:
+    """Total propagation at the action nodes, a weight per action coordinate and one for the state
+    paths (:class:`ActionNodes`), each from the given k_LR source."""
+    return ActionNodes(weight_source(k_lr))
 
 
 def robust(gamma: float = float("inf"), z: float = 2.0, k_lr: str | float = "previous", messages: str = "mixed") -> Robust:

@@ -16,6 +16,7 @@ Named estimators (:func:`estimator`), with the thesis' table names:
 ``lr_plain`` plain LR with the leave-one-out baseline (§3, for comparison and tests)
 ``tp``     total propagation of RP and BIW-LR (§4, Alg. 5)
 ``tp_plain`` total propagation of RP and plain LR (§3–§4; unbiased with the "previous" k_LR)
+``tpx``    total propagation at the action nodes: a weight per action coordinate (the idea of TPX)
 ``gtp``    Gaussian-shaped total propagation (§5, Alg. 6)
 ``glr``    Gaussian-shaped LR (§5)
 ``del``    density-estimation LR (§6)
@@ -30,7 +31,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pipps.propagation.combine import COMBINERS, inverse_variance, robust, single
+from pipps.propagation.combine import COMBINERS, action_nodes, inverse_variance, robust, single
 from pipps.propagation.cost_terms import (
     DensityEstimationCosts,
     density_estimation_costs,
@@ -134,6 +135,7 @@ ESTIMATORS = {
     "lr_plain": compose(plain_costs(), plain_lr()),
     "tp": compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance()),
     "tp_plain": compose(plain_costs(), pathwise(), plain_lr(), combiner=inverse_variance()),
+    "tpx": compose(plain_costs(), pathwise(), biw_lr(), combiner=action_nodes()),
     "gtp": compose(shaped_costs(), pathwise(), biw_lr(), combiner=inverse_variance()),
     "glr": compose(shaped_costs(), biw_lr()),
     "del": compose(density_estimation_costs(), pathwise()),
@@ -193,6 +195,10 @@ def _recombined(name: str, combiner, num_parts: int, settings: dict):
         raise ValueError(f"{extra} belong to the robust combiner; pass combiner='robust' as well")
     if rule == "inverse_variance":
         return inverse_variance(k_lr, messages)
+    if rule == "action_nodes":
+        if "messages" in settings:
+            raise ValueError("messages: the action-node combiner mixes the state paths with a weight of their own; it takes no messages setting")
+        return action_nodes(k_lr)
     raise ValueError(f"combiner must be one of {COMBINERS}, got {rule!r}")
 
 
