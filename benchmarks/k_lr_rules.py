@@ -35,6 +35,17 @@ same run so that the Gflop-equivalents stay comparable.
     JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py            # the documented table
     JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py --quick    # a smoke run
     JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py --cells --lg-bias 40000 --lg-particles 10 30   # the bias table only
+
+The action-node rules (``tpx``, issue 20 item 3) and the cells added with them — the two-action
+linear-Gaussian system (``pipps.systems.linear_gaussian.two_action_reference_system``) and the
+cart-pole snapshot of the landscape study (``CARTPOLE_FILE`` trial 6, θ + Δ·d along PILCO's
+direction, Δ = 0 and 1.5; bias against BIW-LR on the same particles) — run on their own with
+``--rules``; the rows of the other rules do not change when rules are left out (every rule sees the
+same particles in a replicate):
+
+    JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py --rules "TP previous (default)" "TP batch (thesis)" \
+        "TP leave-one-out" "TPX previous" "TPX batch" "TPX leave-one-out" \
+        --cells chaotic smooth "linear-Gaussian 2u" "cart-pole Δ=0" "cart-pole Δ=1.5"
 """
 
 from __future__ import annotations
@@ -56,6 +67,7 @@ from pipps.propagation.parts import biw_lr, pathwise
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.stats import paired_replicate_gradients, trace_variance, variance_ratio_text
 from pipps.systems import exact_objective, reference_system
+from pipps.systems.linear_gaussian import two_action_reference_system
 from pipps.systems.chaotic import kicked_rotor_system
 
 pipps.enable_float64()
@@ -72,17 +84,46 @@ RULES = {
     "TP robust γ=1 (batch)": estimator("tp", combiner="robust", robust_gamma=1.0, k_lr="batch"),
     "TP previous, RP messages": compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance("previous", "pathwise")),
     "TP leave-one-out, RP messages": compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance("leave_one_out", "pathwise")),
+    "TPX previous": estimator("tpx"),
+    "TPX batch": estimator("tpx", k_lr="batch"),
+    "TPX leave-one-out": estimator("tpx", k_lr="leave_one_out"),
 }
+PARTS = ("RP", "BIW-LR")  # every run has them: the variance ratios and the kicked-rotor and cart-pole bias read them
+
+# the cart-pole cells: the landscape study's snapshot (docs/gradients.md), at Δ along PILCO's direction
+CARTPOLE_FILE = "results/thesis/cartpole_swingup_angle_k1_tp_thesis_s0.h5"
+CARTPOLE_TRIAL = 6
+CARTPOLE_DELTAS = {"cart-pole Δ=0": 0.0, "cart-pole Δ=1.5": 1.5}
+CELLS = ("chaotic", "smooth", "linear-Gaussian", "linear-Gaussian 2u", *CARTPOLE_DELTAS)
+EXACT = ("linear-Gaussian", "linear-Gaussian 2u")  # cells whose exact gradient is known
 
 
+@functools.lru_cache(maxsize=None)
+def _cartpole_snapshot():
+    from pipps.studies.snapshot import load_snapshot, pilco_direction
+
+    snap = load_snapshot(CARTPOLE_FILE, CARTPOLE_TRIAL)
+    return snap, np.asarray(pilco_direction(snap))
+
+
+@functools.lru_cache(maxsize=None)
 def system(name: str):
     if name == "linear-Gaussian":
         return reference_system(0.3, "saturating")
+    if name == "linear-Gaussian 2u":
+        return two_action_reference_system(0.3)
+    if name in CARTPOLE_DELTAS:
+        snap, d = _cartpole_snapshot()
+        return snap.task, snap.model, snap.unravel(jax.numpy.asarray(snap.theta + CARTPOLE_DELTAS[name] * d))
     return kicked_rotor_system(name)
 
 
 def rollout_config(name: str, P: int) -> RolloutConfig:
-    return RolloutConfig(num_particles=P) if name == "linear-Gaussian" else RolloutConfig(num_particles=P, model_variance=False)
+    if name in EXACT:
+        return RolloutConfig(num_particles=P)
+    if name in CARTPOLE_DELTAS:  # the thesis' TP rollout: the GP's variance, the experiment's horizon
+        return RolloutConfig(num_particles=P, horizon=_cartpole_snapshot()[0].config.horizon)
+    return RolloutConfig(num_particles=P, model_variance=False)
 
 
 def gemm_gflops(n: int = 512, reps: int = 9) -> float:
@@ -114,12 +155,12 @@ def seconds_per_eval(name: str, P: int, est, calls: int = 15) -> float:
     return float(np.median(times))
 
 
-def replicates(name: str, P: int, R: int, seed: int):
+def replicates(name: str, P: int, R: int, seed: int, rules: dict):
     task, model, policy = system(name)
     run = jax.jit(
         functools.partial(
             paired_replicate_gradients, task=task, model=model, policy=policy, config=rollout_config(name, P),
-            estimators=RULES, num_replicates=R,
+            estimators=rules, num_replicates=R, batch_size=25 if P <= 100 else 5,
         )
     )
     out = run(jax.random.PRNGKey(seed))
@@ -140,16 +181,16 @@ def bias(g, reference) -> tuple[np.ndarray, float, float]:
     return b, float(np.linalg.norm(b) / np.linalg.norm(ref_mean)), float(np.max(z))
 
 
-def cell_rows(name: str, P: int, R: int, seed: int, gflops: float, timing: bool) -> list[str]:
-    g, k = replicates(name, P, R, seed)
-    if name == "linear-Gaussian":
+def cell_rows(name: str, P: int, R: int, seed: int, gflops: float, timing: bool, rules: dict) -> list[str]:
+    g, k = replicates(name, P, R, seed, rules)
+    if name in EXACT:
         task, model, policy = system(name)
         reference = np.asarray(ravel_pytree(jax.grad(exact_objective, argnums=2)(task, model, policy))[0])
     else:
         reference = g["BIW-LR"]
     parts = min(("RP", "BIW-LR"), key=lambda n: trace_variance(g[n]))
     rows = []
-    for rule, est in RULES.items():
+    for rule, est in rules.items():
         v = trace_variance(g[rule])
         if reference.ndim == 2 and rule == "BIW-LR":
             b_cell, mse = "(reference)", v
@@ -200,7 +241,12 @@ def main(argv=None):
     ap.add_argument("--replicates-large-p", type=int, default=400, help="R per kicked-rotor cell at P >= 100")
     ap.add_argument("--lg-particles", type=int, nargs="+", default=[30])
     ap.add_argument("--lg-replicates", type=int, default=20000, help="R per linear-Gaussian cell")
-    ap.add_argument("--cells", nargs="*", default=["chaotic", "smooth", "linear-Gaussian"])
+    ap.add_argument("--cells", nargs="*", default=["chaotic", "smooth", "linear-Gaussian"], choices=CELLS,
+                    help="also 'linear-Gaussian 2u' (two actions) and the cart-pole snapshot cells")
+    ap.add_argument("--cartpole-particles", type=int, nargs="+", default=[100, 300])
+    ap.add_argument("--cartpole-replicates", type=int, default=300)
+    ap.add_argument("--rules", nargs="+", default=None, choices=list(RULES), metavar="RULE",
+                    help=f"only these rules (with {' and '.join(PARTS)}); default: all of {list(RULES)}")
     ap.add_argument("--lg-bias", type=int, default=0, metavar="R", help="also the linear-Gaussian bias table with R replicates")
     ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--seed", type=int, default=20)
@@ -216,14 +262,16 @@ def main(argv=None):
     head = ["system", "P", "R", "rule", "var", "var / min(RP, BIW-LR) [95 %]", "bias: rel. (max |z|)", "MSE",
             "mean k", "s / eval", "Gflop-eq", "MSE × s"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    rules = RULES if args.rules is None else {n: RULES[n] for n in (*PARTS, *args.rules)}
     for name in args.cells:
-        particles = args.lg_particles if name == "linear-Gaussian" else args.particles
-        for P in particles:
-            if name == "linear-Gaussian":
+        for P in (args.lg_particles if name in EXACT else args.cartpole_particles if name in CARTPOLE_DELTAS else args.particles):
+            if name in EXACT:
                 R = args.lg_replicates
+            elif name in CARTPOLE_DELTAS:
+                R = args.cartpole_replicates
             else:
                 R = args.replicates if P < 100 else args.replicates_large_p
-            lines += cell_rows(name, P, R, args.seed + P, gflops, not args.no_timing)
+            lines += cell_rows(name, P, R, args.seed + P, gflops, not args.no_timing, rules)
             print(f"[{name} P={P} done at {time.perf_counter() - start:.0f} s]", flush=True)
     if args.cells:
         print("\n" + "\n".join(lines) + "\n")

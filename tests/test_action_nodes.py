@@ -24,30 +24,13 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from pipps.particles.forward import RolloutConfig, sample_noise
-from pipps.policies import LinearPolicy
 from pipps.propagation.combine import ActionNodes, FixedWeight, action_nodes
 from pipps.propagation.config import compose, estimator
 from pipps.propagation.cost_terms import plain_costs
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.propagation.parts import biw_lr, pathwise
 from pipps.stats import replicate_gradients, z_bound
-from pipps.systems.linear_gaussian import LinearGaussianModel, exact_objective, make_linear_gaussian_task
-
-
-def two_action_system(horizon: int = 10, noise_std: float = 0.3):
-    """3 states, 2 controls with different effects (the second weaker and on other states)."""
-    task = make_linear_gaussian_task(
-        3, 2, horizon=horizon, init_mean=[1.0, 0.0, -0.5], init_cov=0.01 * np.eye(3),
-        cost="saturating", cost_weight=np.diag([1.0, 0.5, 0.2]),
-    )
-    F = jnp.array([
-        [0.05, 0.10, 0.00, 0.00, 0.03],
-        [0.00, 0.02, 0.10, 0.10, 0.00],
-        [0.05, 0.00, -0.10, 0.20, 0.05],
-    ])
-    model = LinearGaussianModel(F, jnp.array([0.01, 0.0, -0.01]), jnp.full((3,), noise_std**2))
-    policy = LinearPolicy(jnp.array([[-0.5, -0.8, -0.2], [0.3, -0.2, -0.6]]), jnp.array([0.05, -0.02]), (10.0, 10.0), saturated=False)
-    return task, model, policy
+from pipps.systems.linear_gaussian import exact_objective, two_action_reference_system as two_action_system
 
 
 def flat(tree):

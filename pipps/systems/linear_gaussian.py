@@ -238,3 +238,22 @@ def reference_system(noise_std: float = 0.1, cost: str = "quadratic", horizon: i
     model = LinearGaussianModel(F, jnp.array([0.01, 0.0, -0.01]), jnp.full((3,), noise_std**2))
     policy = LinearPolicy(jnp.array([[-0.5, -0.8, -0.2]]), jnp.array([0.05]), (10.0,), saturated=False)
     return task, model, policy
+
+
+def two_action_reference_system(noise_std: float = 0.3, horizon: int = 10):
+    """A reference instance with two controls of different effect, ``(task, model, policy)``: the
+    states, start and saturating cost of :func:`reference_system`; the second control is weaker and
+    acts on other states. For the estimators that weigh each action coordinate (``tpx``)."""
+    task = make_linear_gaussian_task(
+        3, 2, horizon=horizon, init_mean=[1.0, 0.0, -0.5], init_cov=0.01 * np.eye(3),
+        cost="saturating", cost_weight=np.diag([1.0, 0.5, 0.2]),
+    )
+    F = jnp.array([
+        [0.05, 0.10, 0.00, 0.00, 0.03],
+        [0.00, 0.02, 0.10, 0.10, 0.00],
+        [0.05, 0.00, -0.10, 0.20, 0.05],
+    ])
+    model = LinearGaussianModel(F, jnp.array([0.01, 0.0, -0.01]), jnp.full((3,), noise_std**2))
+    W = jnp.array([[-0.5, -0.8, -0.2], [0.3, -0.2, -0.6]])
+    policy = LinearPolicy(W, jnp.array([0.05, -0.02]), (10.0, 10.0), saturated=False)
+    return task, model, policy
