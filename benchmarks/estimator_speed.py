@@ -61,6 +61,7 @@ VARIANTS = {
     "lr_plain": ("lr_plain", {}),
     "tp": ("tp", {}),
     "tp −σ_f": ("tp", {"model_variance": False}),
+    "tpx": ("tpx", {}),
     "gtp": ("gtp", {}),
     "glr": ("glr", {}),
     "del": ("del", {}),
@@ -89,6 +90,20 @@ def make_call(task, model, policy, name, overrides, P, T):
     return jax.jit(g)
 
 
+def gemm_gflops(n: int = 512, reps: int = 9) -> float:
+    """Median float64 GEMM rate (Gflop/s) of an n×n product, measured now: the machine's speed in
+    the same run, so that the seconds above can be compared across machines."""
+    a = jax.random.normal(jax.random.PRNGKey(0), (n, n))
+    f = jax.jit(lambda x: x @ x)
+    f(a).block_until_ready()
+    times = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        f(a).block_until_ready()
+        times.append(time.perf_counter() - t)
+    return 2 * n**3 / np.median(times) / 1e9
+
+
 def time_call(fn, policy, repeats: int):
     jax.block_until_ready(fn(jax.random.PRNGKey(0), policy))  # compile
     times = []
@@ -115,6 +130,7 @@ def main(argv=None):
     policy = init_rbf_policy(jax.random.PRNGKey(0), 50, np.zeros(4), np.diag([0.1, 1.0, 4.0, 1.0]), task.u_max)
     print(f"# estimator speed: P={args.particles}, T={args.horizon}, N={args.data}, D=4, Dz=5, RBF 50 centres")
     print(f"# machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, jax {jax.__version__}, {jax.devices()[0].platform}")
+    print(f"# float64 GEMM (512³) at the start: {gemm_gflops():.1f} Gflop/s")
     results = {}
     only = {w for w in args.only.split(",") if w}
     for label, (name, overrides) in VARIANTS.items():
@@ -126,6 +142,7 @@ def main(argv=None):
     print("\n| variant | median s | IQR s | ratio to RP |\n|---|---|---|---|")
     for label, (med, q1, q3) in results.items():
         print(f"| {label} | {med:.4f} | {q1:.4f}–{q3:.4f} | {med / rp:.2f} |")
+    print(f"# float64 GEMM (512³) at the end: {gemm_gflops():.1f} Gflop/s")
 
 
 if __name__ == "__main__":
