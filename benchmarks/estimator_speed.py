@@ -125,7 +125,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.quick:
         args.particles, args.data, args.horizon, args.repeats = 50, 50, 10, 3
-    task = make_task("cartpole_swingup", horizon=args.horizon)
+    task = make_task("cartpole_swingup", horizon=args.horizon).problem  # the estimators only plan
     model = cartpole_model(args.data)
     policy = init_rbf_policy(jax.random.PRNGKey(0), 50, np.zeros(4), np.diag([0.1, 1.0, 4.0, 1.0]), task.u_max)
     print(f"# estimator speed: P={args.particles}, T={args.horizon}, N={args.data}, D=4, Dz=5, RBF 50 centres")

@@ -6,7 +6,7 @@ augmentation ``[y; sin y_a, cos y_a (a in angle_idx)]``. The thesis writes the s
 function as ``1 − exp(−(φ − z)ᵀ Q (φ − z))``, so ``W = 2Q`` (tasks.md §8).
 
 A :class:`SaturatingCost` is static configuration (numpy constants closed over by jitted
-code), like :class:`pipps.tasks.base.Task`; it satisfies the ``Cost`` protocol there.
+code), like :class:`pipps.tasks.base.Problem`; it satisfies the ``Cost`` protocol there.
 ``cost(x)`` is exact per state (vmappable over particles); ``cost.expected(mean, cov)``
 is PILCO's moment-matched ``(E[c], Var[c])``: exact through the linear map and §5.6, an
 approximation only where the non-Gaussian trig features are replaced by a Gaussian.

@@ -39,11 +39,11 @@ def random_policy_rollouts(
     key_pol, key_roll = jax.random.split(jax.random.PRNGKey(seed))
     pol = None
     if policy == "random-policy":
-        d = task.policy_input_dim
+        d = task.problem.policy_input_dim
         if task_name == "unicycle":
-            pol = init_linear_policy(key_pol, d, task.u_max)
+            pol = init_linear_policy(key_pol, d, task.problem.u_max)
         else:
-            pol = init_rbf_policy(key_pol, 50, np.zeros(d), np.eye(d), task.u_max)
+            pol = init_rbf_policy(key_pol, 50, np.zeros(d), np.eye(d), task.problem.u_max)
     run = jax.jit(jax.vmap(lambda key: rollout(key, task, pol)))
     trajs = run(jax.random.split(key_roll, episodes))
     return RolloutReport(

@@ -4,6 +4,9 @@ One ``lax.scan`` over the horizon; vmap :func:`rollout` over keys for the evalua
 rollouts. The gymnasium environments in :mod:`pipps.tasks.envs` expose the same
 system step by step for external use; the learning code uses this function because
 it runs a whole trajectory in one compiled call.
+
+A rollout takes a :class:`~pipps.tasks.base.Task`: its simulator integrates, observes and maps
+into the model state; its problem gives the horizon, the cost and the policy input.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pipps.precision import require_float64
-from pipps.tasks.base import Task
+from pipps.tasks.base import Simulator, Task
 
 
 class Trajectory(NamedTuple):
@@ -33,10 +36,10 @@ class Trajectory(NamedTuple):
         return jnp.sum(jnp.where(self.valid, self.costs, 0.0), axis=-1)
 
 
-def sample_initial_state(key: jax.Array, task: Task) -> jax.Array:
+def sample_initial_state(key: jax.Array, simulator: Simulator) -> jax.Array:
     """s_0 ~ N(μ0, Σ0) in simulator coordinates (tasks.md §1.1)."""
     return jax.random.multivariate_normal(
-        key, jnp.asarray(task.init_mean), jnp.asarray(task.init_cov), method="svd"
+        key, jnp.asarray(simulator.init_mean), jnp.asarray(simulator.init_cov), method="svd"
     )
 
 
@@ -56,13 +59,14 @@ def rollout(
     task with a fall condition, a non-finite next state counts as a fall as well.
     """
     require_float64("pipps.rollout.rollout")
-    H = task.horizon if horizon is None else int(horizon)
+    sim, problem = task.simulator, task.problem
+    H = problem.horizon if horizon is None else int(horizon)
     k0, k_obs, k_act = jax.random.split(key, 3)
-    s0 = sample_initial_state(k0, task)
-    noise_std = jnp.asarray(task.obs_noise_std)
-    obs_noise = noise_std * jax.random.normal(k_obs, (H + 1, task.sim_dim))
-    u_rand = jnp.asarray(task.u_rand)
-    rand_u = jax.random.uniform(k_act, (H, task.action_dim), minval=-u_rand, maxval=u_rand)
+    s0 = sample_initial_state(k0, sim)
+    noise_std = jnp.asarray(sim.obs_noise_std)
+    obs_noise = noise_std * jax.random.normal(k_obs, (H + 1, sim.sim_dim))
+    u_rand = jnp.asarray(sim.u_rand)
+    rand_u = jax.random.uniform(k_act, (H, problem.action_dim), minval=-u_rand, maxval=u_rand)
 
     def step(carry, inp):
         s, alive = carry
@@ -71,15 +75,15 @@ def rollout(
         if policy is None:
             u = u_random
         else:
-            u = policy(task.policy_input(task.sim_to_model(o)))
-        s_next = task.step(s, u)
-        if task.fallen is not None:
+            u = policy(problem.policy_input(sim.sim_to_model(o)))
+        s_next = sim.step(s, u)
+        if sim.fallen is not None:
             # a state the integrator could not carry (non-finite, deep in a fall) ends the episode too
-            fell = task.fallen(s_next) | ~jnp.all(jnp.isfinite(s_next))
+            fell = sim.fallen(s_next) | ~jnp.all(jnp.isfinite(s_next))
         else:
             fell = jnp.asarray(False)
         valid = alive & ~fell
-        c = jnp.where(valid, task.cost(task.sim_to_model(s_next)), 0.0)
+        c = jnp.where(valid, problem.cost(sim.sim_to_model(s_next)), 0.0)
         s_keep = jnp.where(valid, s_next, s)
         return (s_keep, valid), (s_keep, o, u, c, valid)
 
@@ -96,8 +100,8 @@ def training_pairs(task: Task, traj: Trajectory) -> tuple[np.ndarray, np.ndarray
 
     Only valid transitions are returned (host-side arrays; the data set grows on the host).
     """
-    x_obs = jax.vmap(task.sim_to_model)(traj.observations)
-    inputs = jax.vmap(task.gp_input)(x_obs[:-1], traj.actions)
+    x_obs = jax.vmap(task.simulator.sim_to_model)(traj.observations)
+    inputs = jax.vmap(task.problem.gp_input)(x_obs[:-1], traj.actions)
     targets = x_obs[1:] - x_obs[:-1]
     keep = np.asarray(traj.valid)
     return np.asarray(inputs)[keep], np.asarray(targets)[keep]

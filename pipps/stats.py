@@ -25,7 +25,7 @@ from jax.flatten_util import ravel_pytree
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import Estimator
 from pipps.propagation.estimate import EstimatorState, estimate, init_estimator_state
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 
 def z_bound(num_comparisons: int, alpha: float = 1e-3, *, two_sided: bool = True) -> float:
@@ -63,7 +63,7 @@ def cross_z(u, y, expected):
 
 
 def replicate_state(
-    k_state: jax.Array, k_earlier: jax.Array, policy, model, *, task: Task, config: RolloutConfig, estimator: Estimator
+    k_state: jax.Array, k_earlier: jax.Array, policy, model, *, task: Problem, config: RolloutConfig, estimator: Estimator
 ) -> EstimatorState:
     """The :class:`EstimatorState` a replicate starts from, from keys independent of its estimate."""
     state = init_estimator_state(k_state, policy, model, task=task, config=config, estimator=estimator)
@@ -73,7 +73,7 @@ def replicate_state(
 
 
 def replicate_gradients(
-    key: jax.Array, task: Task, model, policy, config: RolloutConfig, estimator: Estimator, num: int
+    key: jax.Array, task: Problem, model, policy, config: RolloutConfig, estimator: Estimator, num: int
 ) -> np.ndarray:
     """(num, n_θ) independent estimates of ∇θJ: jit + vmap over keys, in chunks with chunk·P² ≤ 5e6."""
 
@@ -98,7 +98,7 @@ class Replicates(NamedTuple):
 
 
 def paired_replicate_gradients(
-    key: jax.Array, task: Task, model, policy, config: RolloutConfig, estimators: dict, num_replicates: int,
+    key: jax.Array, task: Problem, model, policy, config: RolloutConfig, estimators: dict, num_replicates: int,
     *, batch_size: int = 25,
 ) -> Replicates:
     """``num_replicates`` independent estimates of ∇θJ for each named :class:`Estimator`.

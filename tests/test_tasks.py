@@ -273,6 +273,30 @@ def test_overrides():
     assert t.u_max.dtype == np.float64 and np.array_equal(t.u_max, [5.0]) and not t.u_max.flags.writeable
 
 
+def test_a_task_is_a_problem_and_a_simulator():
+    """make_task splits the fields between the planning problem and the true system; the pair
+    reads them through, refuses halves that disagree, and a field on neither is an error."""
+    import dataclasses
+
+    task = make_task("unicycle", "pilco", k=4.0, horizon=10)
+    p, sim = task.problem, task.simulator
+    assert isinstance(p, T.Problem) and isinstance(sim, T.Simulator) and task.preset == "pilco"
+    assert not any(hasattr(p, f) for f in ("sim_dim", "ode", "init_mean", "obs_noise_std", "u_rand", "step"))
+    assert not any(hasattr(sim, f) for f in ("model_dim", "horizon", "cost", "gp_input_idx", "policy_input"))
+    assert (p.horizon, p.model_dim, sim.sim_dim, sim.substeps, sim.noise_multiplier) == (10, 10, 12, 200, 4.0)
+    assert p.dt == sim.dt == task.dt == 0.15 and task.name == p.name == sim.name == "unicycle"
+    assert task.horizon is p.horizon and task.init_cov is sim.init_cov and task.cost is p.cost
+    assert task.step.__self__ is sim and task.gp_input.__self__ is p
+    with pytest.raises(AttributeError, match="neither its problem nor its simulator"):
+        task.horizn
+    with pytest.raises(ValueError, match="differ in dt"):
+        T.Task(p, dataclasses.replace(sim, dt=0.1))
+    with pytest.raises(ValueError, match="u_rand must have shape"):
+        T.Task(p, dataclasses.replace(sim, u_rand=np.ones(3)))
+    cp = make_task("cartpole_swingup", dt=0.05)
+    assert cp.problem.dt == cp.simulator.dt == 0.05
+
+
 def test_costs_wired_and_match_reference():
     """§7.3 cost values through make_task (tip cost by name; pilco default), unicycle cost, angle cost."""
     tip_cost = make_task("cartpole_swingup", "pilco").cost

@@ -106,7 +106,7 @@ class Resimulator:
         key = (cfg.task, cfg.preset, cfg.k, cfg.cost, cfg.cost_scale, cfg.horizon, cfg.policy, cfg.num_basis, balance)
         if key not in self._programs:
             task = make_experiment_task(cfg)
-            unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task))[1]
+            unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task.problem))[1]
             run = jax.jit(lambda keys, flat: evaluate_rollouts(keys, task, unravel(flat), balance))
             self._programs[key] = run
         return self._programs[key]

@@ -241,7 +241,7 @@ def prediction_chart(path: str, title: str, r: ExperimentResult, size=PANEL) -> 
 
     final = r.trials[-1]
     idx, real_idx, label = ANGLE_INDEX[r.config.task]
-    dt = make_experiment_task(r.config).dt
+    dt = make_experiment_task(r.config).problem.dt
     values = [final.states[:, real_idx]]
     pred = final.predicted
     if isinstance(pred, ParticlePrediction):
@@ -284,7 +284,7 @@ def draw_prediction(rec, c: ch.Chart, r: ExperimentResult, color) -> None:
 
     final = r.trials[-1]
     idx, real_idx, _ = ANGLE_INDEX[r.config.task]
-    dt = make_experiment_task(r.config).dt
+    dt = make_experiment_task(r.config).problem.dt
     pred = final.predicted
     if isinstance(pred, ParticlePrediction):
         x = pred.particles[:, :, idx]

@@ -6,7 +6,9 @@ how a program over seeds is computed: ``compile(fn)`` turns a one-seed function 
 ``stack`` puts the seeds' values on the axis and ``take`` gets one back, ``fit`` trains their GPs.
 The one-seed axis is no axis at all: its programs are the one-seed functions jitted, so an
 unbatched run computes exactly what it always did. :class:`Programs` builds every program once per
-experiment (or batch) and reuses it across trials.
+experiment (or batch) and reuses it across trials. The rollouts and their evaluation take the
+:class:`~pipps.tasks.base.Task` (its simulator and, for the cost and the policy input, its problem);
+the policy optimisation and the prediction plan, so they take only ``task.problem``.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from pipps.experiments.methods import FIXED_SEED, MOMENTUM, PILCO_SEARCH, partic
 from pipps.experiments.records import Diagnostics, MomentPrediction, ParticlePrediction, SearchTrace, StepTrace
 from pipps.gp import fit
 from pipps.rollout import rollout
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem, Task
 
 Progress = Callable[[dict[str, Any]], None]
 
@@ -69,18 +71,18 @@ def evaluate_rollouts(keys, task: Task, policy, balance: tuple[int, float, float
     from pipps.experiments.criteria import balanced, is_cartpole
 
     trajs = jax.vmap(lambda k: rollout(k, task, policy))(keys)
-    fallen_steps = task.horizon - jnp.sum(trajs.valid, axis=-1)
+    fallen_steps = task.problem.horizon - jnp.sum(trajs.valid, axis=-1)
     upright = jnp.all(trajs.valid, axis=-1)
-    ok = balanced(trajs.states, *balance) if balance is not None and is_cartpole(task.name) else upright
+    ok = balanced(trajs.states, *balance) if balance is not None and is_cartpole(task.problem.name) else upright
     return trajs.total_cost + fallen_steps, upright, ok
 
 
-def predict_particles(key, task: Task, rcfg, store: int, policy, model):
+def predict_particles(key, problem: Problem, rcfg, store: int, policy, model):
     """The stored prediction of a trial: the first ``store`` particles' states (T+1, store, D) and
     the mean predicted cost per step, from one particle rollout of the optimised policy. Pure."""
     from pipps.particles.forward import particle_rollout, sample_noise
 
-    rec = particle_rollout(task, policy, model, sample_noise(key, task, rcfg), rcfg, jacobian=False)
+    rec = particle_rollout(problem, policy, model, sample_noise(key, problem, rcfg), rcfg, jacobian=False)
     xs = jnp.concatenate([rec.x[:1], rec.x_next], axis=0)  # (T+1, P, D)
     return xs[:, :store], jnp.mean(rec.cost, axis=1)
 
@@ -109,7 +111,7 @@ class Programs:
         self.trial = axis.compile(lambda k, p: rollout(k, task, p))
         self.evaluate = axis.compile(lambda keys, p: evaluate_rollouts(keys, task, p, balance))
         build = {MOMENTUM: _momentum_optimizer, FIXED_SEED: _fixed_seed_optimizer, PILCO_SEARCH: _pilco_optimizer}
-        self.optimize: Optimize = build[cfg.method_spec.optimizer](cfg, task, axis)
+        self.optimize: Optimize = build[cfg.method_spec.optimizer](cfg, task.problem, axis)
 
 
 def shape_groups(trees) -> list[list[int]]:
@@ -122,7 +124,7 @@ def shape_groups(trees) -> list[list[int]]:
     return list(groups.values())
 
 
-def _momentum_optimizer(cfg: ExperimentConfig, task: Task, axis) -> Optimize:
+def _momentum_optimizer(cfg: ExperimentConfig, problem: Problem, axis) -> Optimize:
     """The estimator's gradient with normalized momentum, ``policy_evals`` steps in chunks of
     ``progress_chunk`` (each a compiled scan), every seed of a shape group on the axis at once."""
     from pipps.optimizers.normalized import normalized_momentum
@@ -130,10 +132,10 @@ def _momentum_optimizer(cfg: ExperimentConfig, task: Task, axis) -> Optimize:
 
     rcfg, est = particle_method(cfg)
     opt = normalized_momentum(cfg.learning_rate, cfg.momentum)
-    init = axis.compile(lambda k, p, m: init_policy_opt_state(k, p, m, task=task, config=rcfg, estimator=est,
+    init = axis.compile(lambda k, p, m: init_policy_opt_state(k, p, m, task=problem, config=rcfg, estimator=est,
                                                                optimizer=opt))
-    steps = axis.compile_steps(make_policy_optimizer(task, rcfg, est, opt))
-    predict = axis.compile(lambda k, p, m: predict_particles(k, task, rcfg, cfg.store_particles, p, m))
+    steps = axis.compile_steps(make_policy_optimizer(problem, rcfg, est, opt))
+    predict = axis.compile(lambda k, p, m: predict_particles(k, problem, rcfg, cfg.store_particles, p, m))
     chunk = min(cfg.progress_chunk, cfg.policy_evals)
 
     def optimize(keys, policies, models, progress: Progress) -> list[Optimized]:
@@ -196,16 +198,16 @@ def _per_seed(optimize_one) -> Optimize:
                                                      for k, p, m in zip(keys, policies, models)]
 
 
-def _fixed_seed_optimizer(cfg: ExperimentConfig, task: Task, axis) -> Optimize:
+def _fixed_seed_optimizer(cfg: ExperimentConfig, problem: Problem, axis) -> Optimize:
     from pipps.optimizers.quasi_newton import QuasiNewtonConfig
     from pipps.propagation.fixed_seed import optimize_fixed_seed
 
     del axis
     rcfg = rollout_config(cfg)
     qn = QuasiNewtonConfig(length=-cfg.policy_evals, max_evals_per_linesearch=30)
-    search = jax.jit(lambda key, policy, model: optimize_fixed_seed(key, policy, model, task=task, config=rcfg,
+    search = jax.jit(lambda key, policy, model: optimize_fixed_seed(key, policy, model, task=problem, config=rcfg,
                                                                      qn_config=qn))
-    predict = jax.jit(lambda key, policy, model: predict_particles(key, task, rcfg, cfg.store_particles, policy, model))
+    predict = jax.jit(lambda key, policy, model: predict_particles(key, problem, rcfg, cfg.store_particles, policy, model))
 
     def optimize_one(key, policy, model, progress: Progress) -> Optimized:
         start = time.perf_counter()
@@ -219,18 +221,18 @@ def _fixed_seed_optimizer(cfg: ExperimentConfig, task: Task, axis) -> Optimize:
     return _per_seed(optimize_one)
 
 
-def _pilco_optimizer(cfg: ExperimentConfig, task: Task, axis) -> Optimize:
+def _pilco_optimizer(cfg: ExperimentConfig, problem: Problem, axis) -> Optimize:
     from pipps.pilco import PolicySearchConfig, optimize_policy, pilco_budget, trajectory
 
     del axis
-    budget = pilco_budget(task) if cfg.pilco_linesearches is None else pilco_budget(task, length=cfg.pilco_linesearches)
+    budget = pilco_budget(problem) if cfg.pilco_linesearches is None else pilco_budget(problem, length=cfg.pilco_linesearches)
     search_cfg = PolicySearchConfig(optimizer=budget, horizon=cfg.horizon)
-    predict = jax.jit(lambda policy, model: trajectory(task, policy, model, horizon=cfg.horizon))
+    predict = jax.jit(lambda policy, model: trajectory(problem, policy, model, horizon=cfg.horizon))
 
     def optimize_one(key, policy, model, progress: Progress) -> Optimized:
         del key
         start = time.perf_counter()
-        new, trace = optimize_policy(task, model, policy, search_cfg)
+        new, trace = optimize_policy(problem, model, policy, search_cfg)
         trace = _search_trace(trace)
         progress(dict(phase="optimize", step=1, steps=1, objective=float(trace.value[-1]),
                       seconds=time.perf_counter() - start))

@@ -27,14 +27,14 @@ from pipps.experiments.records import ExperimentResult, GPRecord, TrialResult
 from pipps.gp import FitState, GPConfig, GPData, GPHyper, make_data, pad_to_capacity
 from pipps.policies import init_linear_policy, init_pilco_rbf_policy, init_rbf_policy, init_rbf_policy_uniform
 from pipps.rollout import Trajectory, training_pairs
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem, Task
 from pipps.tasks.presets import make_task
 
 # -- the experiment's fixed pieces -------------------------------------------------------------------
 
 
 def make_experiment_task(cfg: ExperimentConfig) -> Task:
-    """The task of an experiment (cost, noise multiplier, horizon)."""
+    """The task of an experiment (cost, noise multiplier, horizon): its planning problem and its simulator."""
     overrides = {} if cfg.horizon is None else {"horizon": cfg.horizon}
     cost = cfg.cost
     if cfg.cost_scale != 1.0:
@@ -46,37 +46,38 @@ def make_experiment_task(cfg: ExperimentConfig) -> Task:
     return make_task(cfg.task, preset=cfg.preset, k=cfg.k, cost=cost, **overrides)
 
 
-def policy_start_moments(task: Task) -> tuple[np.ndarray, np.ndarray]:
+def policy_start_moments(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
     """The planning start distribution in policy-input coordinates (trig-augmented where needed)."""
-    mean, cov = np.asarray(task.model_init_mean), np.asarray(task.model_init_cov)
-    if task.angle_idx:
+    mean, cov = np.asarray(problem.model_init_mean), np.asarray(problem.model_init_cov)
+    if problem.angle_idx:
         from pipps.gaussian import trig_augment
 
-        m, c, _ = trig_augment(jnp.asarray(mean), jnp.asarray(cov), task.angle_idx)
+        m, c, _ = trig_augment(jnp.asarray(mean), jnp.asarray(cov), problem.angle_idx)
         mean, cov = np.asarray(m), np.asarray(c)
-    idx = np.asarray(task.policy_input_idx)
+    idx = np.asarray(problem.policy_input_idx)
     return mean[idx], cov[np.ix_(idx, idx)]
 
 
-def init_policy(key: jax.Array, cfg: ExperimentConfig, task: Task):
+def init_policy(key: jax.Array, cfg: ExperimentConfig, problem: Problem):
     """The initial policy (experiments.md "Resolved choices"; the ``quick`` departure)."""
-    d = task.policy_input_dim
+    d = problem.policy_input_dim
     lam = np.asarray(cfg.log_lambda_init, dtype=float)
     if lam.size not in (1, d):
         raise ValueError(f"log_lambda_init: needs 1 or {d} values for this task's policy input, got {lam.size}")
     if cfg.policy == "linear":
-        return init_linear_policy(key, d, task.u_max)
-    mean, cov = policy_start_moments(task)
+        return init_linear_policy(key, d, problem.u_max)
+    mean, cov = policy_start_moments(problem)
     if cfg.centre_std is not None:  # the author's demo: centres at the start mean plus N(0, 1) noise
         cov = cfg.centre_std**2 * np.eye(d)
     if cfg.policy == "pilco_rbf":
-        return init_pilco_rbf_policy(key, cfg.num_basis, mean, cov, task.u_max)
+        return init_pilco_rbf_policy(key, cfg.num_basis, mean, cov, problem.u_max)
     if cfg.policy_init == "uniform":
         if d != len(QUICK_CENTRE_LOW):
             raise ValueError("policy_init=uniform needs the raw 4-dim cart-pole policy input (thesis preset)")
-        return init_rbf_policy_uniform(key, cfg.num_basis, QUICK_CENTRE_LOW, QUICK_CENTRE_HIGH, task.u_max,
+        return init_rbf_policy_uniform(key, cfg.num_basis, QUICK_CENTRE_LOW, QUICK_CENTRE_HIGH, problem.u_max,
                                        log_lambda=lam, weight_scale=cfg.weight_scale)
-    return init_rbf_policy(key, cfg.num_basis, mean, cov, task.u_max, log_lambda=lam, weight_scale=cfg.weight_scale)
+    return init_rbf_policy(key, cfg.num_basis, mean, cov, problem.u_max, log_lambda=lam,
+                           weight_scale=cfg.weight_scale)
 
 
 def gp_config(cfg: ExperimentConfig) -> GPConfig:
@@ -138,7 +139,7 @@ class SeedState:
 
 def initial_state(cfg: ExperimentConfig, task: Task) -> SeedState:
     """The state before trial 0: the initial policy from the seed's key, no data, no GP."""
-    return SeedState(0, init_policy(_seed_keys(cfg)[0], cfg, task), (), (), None)
+    return SeedState(0, init_policy(_seed_keys(cfg)[0], cfg, task.problem), (), (), None)
 
 
 def stored_trajectory(trial: TrialResult) -> Trajectory:

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from pipps.particles.models import PRECISIONS, model_output, noise_variance
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 RESAMPLING = ("none", "gaussian")
 
@@ -65,7 +65,7 @@ class RolloutConfig:
         if self.variance_precision not in PRECISIONS:
             raise ValueError(f"variance_precision must be one of {PRECISIONS}, got {self.variance_precision!r}")
 
-    def steps(self, task: Task) -> int:
+    def steps(self, task: Problem) -> int:
         return task.horizon if self.horizon is None else int(self.horizon)
 
 
@@ -95,7 +95,7 @@ class Noise(NamedTuple):
     eps: jax.Array  # (T, P, D)
 
 
-def sample_noise(key: jax.Array, task: Task, config: RolloutConfig) -> Noise:
+def sample_noise(key: jax.Array, task: Problem, config: RolloutConfig) -> Noise:
     """Draw x_0 ~ N(μ0^x, Σ0^x) and ε ~ N(0, I). Reusing the key gives the fixed-seed variant."""
     k0, ke = jax.random.split(key)
     P, T, D = config.num_particles, config.steps(task), task.model_dim
@@ -105,12 +105,12 @@ def sample_noise(key: jax.Array, task: Task, config: RolloutConfig) -> Noise:
     return Noise(x0, jax.random.normal(ke, (T, P, D)))
 
 
-def controls(task: Task, policy, x: jax.Array) -> jax.Array:
+def controls(task: Problem, policy, x: jax.Array) -> jax.Array:
     """u_i = π(x̃_i[P]) for every particle."""
     return jax.vmap(lambda xi: policy(task.policy_input(xi)))(x)
 
 
-def model_input(task: Task, policy, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+def model_input(task: Problem, policy, x: jax.Array) -> tuple[jax.Array, jax.Array]:
     """(u, z) for every particle: the control and the GP input [x̃[I]; u]."""
     u = controls(task, policy, x)
     return u, jax.vmap(task.gp_input)(x, u)
@@ -129,7 +129,7 @@ def gaussian_resample(mean: jax.Array, std: jax.Array, eps: jax.Array, jitter: f
     return mu_hat + eps @ chol.T
 
 
-def particle_step(task: Task, policy, model, config: RolloutConfig, x, eps, *, jacobian: bool):
+def particle_step(task: Problem, policy, model, config: RolloutConfig, x, eps, *, jacobian: bool):
     """One step of Algorithm 3 for all particles. Returns the record entries of this step."""
     u, z = model_input(task, policy, x)
     out = model_output(model, z, variance=config.model_variance, jacobian=jacobian, precision=config.variance_precision)
@@ -150,7 +150,7 @@ def particle_step(task: Task, policy, model, config: RolloutConfig, x, eps, *, j
     return ParticleRecord(x, u, mean, std, eps, x_next, cost, out.jac_mean, jac_std)
 
 
-def particle_rollout(task: Task, policy, model, noise: Noise, config: RolloutConfig, *, jacobian: bool = True) -> ParticleRecord:
+def particle_rollout(task: Problem, policy, model, noise: Noise, config: RolloutConfig, *, jacobian: bool = True) -> ParticleRecord:
     """Algorithm 3: all particles through all steps, one scan over time.
 
     ``jacobian`` (static) records the model's input Jacobians for the custom backward pass;
@@ -167,7 +167,7 @@ def particle_rollout(task: Task, policy, model, noise: Noise, config: RolloutCon
     return record
 
 
-def reparameterized_objective(task: Task, policy, model, noise: Noise, config: RolloutConfig) -> jax.Array:
+def reparameterized_objective(task: Problem, policy, model, noise: Noise, config: RolloutConfig) -> jax.Array:
     """J(θ) for fixed noise, written plainly so ``jax.grad`` of it is the RP gradient (estimators.md §2).
 
     The reference the custom backward pass is tested against, and the objective of the

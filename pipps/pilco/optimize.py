@@ -23,7 +23,7 @@ import jax
 
 from pipps.optimizers.quasi_newton import QuasiNewtonConfig, QuasiNewtonTrace, minimize
 from pipps.pilco.propagate import objective
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 PILCO_BUDGETS: dict[str, tuple[int, int]] = {
     "cartpole_swingup": (150, 30),
@@ -52,7 +52,7 @@ class PolicySearchConfig:
     checkpoint: bool = True
 
 
-def pilco_budget(task: Task, **overrides) -> QuasiNewtonConfig:
+def pilco_budget(task: Problem, **overrides) -> QuasiNewtonConfig:
     """PILCO's policy-search budget for ``task`` (see the module table), with optional overrides."""
     length, per_ls = PILCO_BUDGETS.get(task.name, DEFAULT_BUDGET)
     settings = dict(length=length, max_evals_per_linesearch=per_ls)
@@ -61,7 +61,7 @@ def pilco_budget(task: Task, **overrides) -> QuasiNewtonConfig:
 
 
 @functools.partial(jax.jit, static_argnames=("task", "opt", "config"))
-def _search(task: Task, opt: QuasiNewtonConfig, config: PolicySearchConfig, policy, model):
+def _search(task: Problem, opt: QuasiNewtonConfig, config: PolicySearchConfig, policy, model):
     def J(p):
         return objective(
             task, p, model, horizon=config.horizon, model_uncertainty=config.model_uncertainty,
@@ -72,7 +72,7 @@ def _search(task: Task, opt: QuasiNewtonConfig, config: PolicySearchConfig, poli
 
 
 def optimize_policy(
-    task: Task, model, policy, config: PolicySearchConfig | None = None
+    task: Problem, model, policy, config: PolicySearchConfig | None = None
 ) -> tuple[object, QuasiNewtonTrace]:
     """Minimise PILCO's moment-matching objective over the policy parameters.
 

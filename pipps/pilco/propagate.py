@@ -33,7 +33,7 @@ from pipps.gp.types import GPPosterior
 from pipps.pilco.controller import control_moments
 from pipps.pilco.gp_moments import WeightedGP, gp_moments, weighted
 from pipps.precision import require_float64
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 
 class PilcoTrajectory(NamedTuple):
@@ -72,7 +72,7 @@ def _selection(rows: int, idx) -> np.ndarray:
     return sel
 
 
-def state_control_joint(task: Task, policy, mean: jax.Array, cov: jax.Array):
+def state_control_joint(task: Problem, policy, mean: jax.Array, cov: jax.Array):
     """Joint Gaussian of ``[x̃; u]`` (§5.5 steps 1–2).
 
     Returns:
@@ -89,7 +89,7 @@ def state_control_joint(task: Task, policy, mean: jax.Array, cov: jax.Array):
 
 
 def step_moments(
-    task: Task,
+    task: Problem,
     policy,
     model,
     mean: jax.Array,
@@ -116,7 +116,7 @@ def step_moments(
 
 
 def propagate(
-    task: Task,
+    task: Problem,
     policy,
     model,
     mean: jax.Array,
@@ -129,7 +129,7 @@ def propagate(
     return g.M, g.S
 
 
-def _start(task: Task, init) -> tuple[jax.Array, jax.Array]:
+def _start(task: Problem, init) -> tuple[jax.Array, jax.Array]:
     if init is None:
         return jnp.asarray(task.model_init_mean), jnp.asarray(task.model_init_cov)
     mean, cov = init
@@ -153,7 +153,7 @@ def _scan_steps(task, policy, model, init, horizon, model_uncertainty, checkpoin
 
 
 def objective(
-    task: Task,
+    task: Problem,
     policy,
     model,
     *,
@@ -180,7 +180,7 @@ def objective(
 
 
 def trajectory(
-    task: Task,
+    task: Problem,
     policy,
     model,
     *,

@@ -33,7 +33,7 @@ from pipps.particles.forward import ParticleRecord, RolloutConfig
 from pipps.propagation.config import Estimator
 from pipps.propagation.lr import ZetaGrad
 from pipps.propagation.parts import LIKELIHOOD_RATIO, PATHWISE, PartCotangents, StepInputs
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 
 class StepDiagnostics(NamedTuple):
@@ -61,14 +61,14 @@ class PreviousIteration(NamedTuple):
     has_previous: jax.Array  # bool scalar: False on an optimizer's first iteration
 
 
-def _z_map(task: Task):
+def _z_map(task: Problem):
     def z_of(x, policy):
         return task.gp_input(x, policy(task.policy_input(x)))
 
     return z_of
 
 
-def _pull_back(task: Task, policy, x_prev, ct_z, *, with_x: bool):
+def _pull_back(task: Problem, policy, x_prev, ct_z, *, with_x: bool):
     """Per-particle VJP of x ↦ z(x, θ) for K stacked cotangents ct_z (K, P, Dz).
 
     Returns (θ-cotangents (K, P, n_θ), x-cotangents (K, P, D) or None).
@@ -101,7 +101,7 @@ def _to_z(gam: ZetaGrad, jac_mean, jac_std) -> jax.Array:
     return ct
 
 
-def mean_returns(task: Task, record: ParticleRecord, est: Estimator) -> jax.Array:
+def mean_returns(task: Problem, record: ParticleRecord, est: Estimator) -> jax.Array:
     """Per-step mean return-to-go of a forward record, (T,) — the "previous" baseline's source."""
     def step_cost(x_t, c):
         return est.costs.step(task.cost, x_t, c, None, None, gradient=False).cost
@@ -112,7 +112,7 @@ def mean_returns(task: Task, record: ParticleRecord, est: Estimator) -> jax.Arra
 
 
 def backward_sweep(
-    task: Task,
+    task: Problem,
     policy,
     record: ParticleRecord,
     config: RolloutConfig,

@@ -36,7 +36,7 @@ from pipps.propagation.backward import PreviousIteration, StepDiagnostics, Sweep
 from pipps.propagation.combine import PreviousWeight, weight_source
 from pipps.propagation.config import Estimator
 from pipps.propagation.strategy import strategy
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 
 PILOTS = ("leave_one_out", "batch", "split")
@@ -85,7 +85,7 @@ class CrossFitted:
     def _with_source(self, source) -> Estimator:
         return dataclasses.replace(self.inner, combiner=dataclasses.replace(self.inner.combiner, source=source))
 
-    def sweep(self, task: Task, policy, record: ParticleRecord, config: RolloutConfig, previous: PreviousIteration) -> SweepOutput:
+    def sweep(self, task: Problem, policy, record: ParticleRecord, config: RolloutConfig, previous: PreviousIteration) -> SweepOutput:
         """The pilot and final sweeps of the two halves; contributions (P, n_θ) in particle order."""
         T, P = record.x.shape[:2]
         if P % 2 or P < 8:

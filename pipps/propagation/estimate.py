@@ -21,7 +21,7 @@ from pipps.precision import require_float64
 from pipps.propagation.config import Estimator
 from pipps.propagation.backward import PreviousIteration, StepDiagnostics, backward_sweep, mean_returns
 from pipps.propagation.cross_fit import CrossFitted
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 
 class EstimatorState(NamedTuple):
@@ -46,7 +46,7 @@ class Estimate(NamedTuple):
 
 
 def init_estimator_state(
-    key: jax.Array, policy, model, *, task: Task, config: RolloutConfig, estimator: Estimator
+    key: jax.Array, policy, model, *, task: Problem, config: RolloutConfig, estimator: Estimator
 ) -> EstimatorState:
     """The state before the first iteration: the "previous" baseline from one extra rollout.
 
@@ -70,7 +70,7 @@ def estimate(
     policy,
     model,
     *,
-    task: Task,
+    task: Problem,
     config: RolloutConfig,
     estimator: Estimator | CrossFitted,
 ) -> tuple[EstimatorState, Estimate]:

@@ -15,7 +15,7 @@ from pipps.optimizers.quasi_newton import QuasiNewtonConfig, QuasiNewtonTrace, m
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 
 def optimize_fixed_seed(
@@ -23,7 +23,7 @@ def optimize_fixed_seed(
     policy,
     model,
     *,
-    task: Task,
+    task: Problem,
     config: RolloutConfig,
     qn_config: QuasiNewtonConfig = QuasiNewtonConfig(length=150, max_evals_per_linesearch=30),
 ):

@@ -22,7 +22,7 @@ from pipps.particles.forward import RolloutConfig
 from pipps.propagation.config import Estimator
 from pipps.propagation.estimate import EstimatorState, estimate, init_estimator_state
 from pipps.propagation.backward import StepDiagnostics
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 
 class PolicyOptState(NamedTuple):
@@ -49,7 +49,7 @@ def _select(ok, new, old):
 
 
 def init_policy_opt_state(
-    key: jax.Array, policy, model, *, task: Task, config: RolloutConfig, estimator: Estimator, optimizer
+    key: jax.Array, policy, model, *, task: Problem, config: RolloutConfig, estimator: Estimator, optimizer
 ) -> PolicyOptState:
     """Fresh optimizer state (momentum reset) and estimator state for a warm-started policy."""
     est_state = init_estimator_state(key, policy, model, task=task, config=config, estimator=estimator)
@@ -61,7 +61,7 @@ def policy_update(
     state: PolicyOptState,
     model,
     *,
-    task: Task,
+    task: Problem,
     config: RolloutConfig,
     estimator: Estimator,
     optimizer: optax.GradientTransformationExtraArgs,
@@ -79,7 +79,7 @@ def policy_update(
     return new, UpdateInfo(est.value, est.particle_objective, grad_norm, ~ok, est.diagnostics)
 
 
-def make_policy_update(task: Task, config: RolloutConfig, estimator: Estimator, optimizer):
+def make_policy_update(task: Problem, config: RolloutConfig, estimator: Estimator, optimizer):
     """A jitted ``step(key, state, model) -> (state, info)`` closed over the static configuration."""
 
     @jax.jit
@@ -89,7 +89,7 @@ def make_policy_update(task: Task, config: RolloutConfig, estimator: Estimator, 
     return step
 
 
-def make_policy_optimizer(task: Task, config: RolloutConfig, estimator: Estimator, optimizer, *, fixed_seed: bool = False):
+def make_policy_optimizer(task: Problem, config: RolloutConfig, estimator: Estimator, optimizer, *, fixed_seed: bool = False):
     """A jitted ``run(key, state, model, num_steps) -> (state, info stacked over steps)``.
 
     Each step draws fresh particle noise from ``fold_in(key, i)``; with ``fixed_seed`` every

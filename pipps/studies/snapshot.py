@@ -22,7 +22,7 @@ from jax.flatten_util import ravel_pytree
 from pipps.experiments.config import ExperimentConfig
 from pipps.gp import GPHyper, GPPosterior, full_posterior
 from pipps.gp.fitc import fitc_posterior
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 
 @dataclasses.dataclass
@@ -32,7 +32,7 @@ class Snapshot:
     source: str  # the result file
     trial: int  # the learned trial whose optimisation start this is
     config: ExperimentConfig
-    task: Task
+    task: Problem  # the experiment's planning problem (the studies never simulate)
     policy: object  # policy pytree at the start of the trial's optimisation
     model: GPPosterior  # the trial's model
     num_points: int  # real GP training points
@@ -92,7 +92,7 @@ def load_snapshot(path: str | os.PathLike, trial: int, *, gp_chunk: int | None =
         model, jitter, ok = full_posterior(hyper, data, gp_config(cfg))
     if not bool(np.all(np.asarray(ok))):
         raise FloatingPointError(f"the posterior Cholesky of trial {trial} failed on rebuilding")
-    return Snapshot(str(path), trial, cfg, task, state.policy, model, state.num_points, data,
+    return Snapshot(str(path), trial, cfg, task.problem, state.policy, model, state.num_points, data,
                     np.asarray(jitter), gp.sparse)
 
 

@@ -18,8 +18,8 @@ variance. :func:`finite_time_lyapunov` estimates λ per particle.
 
 * :class:`KickedRotorModel` — the model with the particle interface
   (``predict(z, variance) -> (mean, var or None)``, ``noise_variance``; zero epistemic variance).
-* :func:`make_kicked_rotor_task` — a :class:`~pipps.tasks.base.Task` around it (no true-system
-  ODE), the angle fed to the policy as ``(sin θ, cos θ)``, a saturating cost towards the
+* :func:`make_kicked_rotor_task` — the :class:`~pipps.tasks.base.Problem` around it (a planning
+  problem only, no true system to simulate), the angle fed to the policy as ``(sin θ, cos θ)``, a saturating cost towards the
   unstable fixed point ``θ = 0 (mod 2π), p = 0``.
 * :func:`kicked_rotor_system` — the fixed ``(task, model, policy)`` instances of the variance
   study: ``"chaotic"`` and ``"smooth"`` (see :data:`SETTINGS`; docs/estimator-variance.md).
@@ -40,7 +40,7 @@ from jax.tree_util import register_dataclass
 from pipps.costs import SaturatingCost
 from pipps.particles.forward import RolloutConfig, sample_noise
 from pipps.policies import LinearPolicy
-from pipps.tasks.base import Task
+from pipps.tasks.base import Problem
 
 
 @register_dataclass
@@ -91,8 +91,8 @@ def make_kicked_rotor_task(
     cost_width: float = 1.0,
     u_max: float = 0.2,
     name: str = "kicked_rotor",
-) -> Task:
-    """A :class:`Task` for the kicked rotor on the model state ``x = [θ, p]``.
+) -> Problem:
+    """The :class:`Problem` of the kicked rotor on the model state ``x = [θ, p]``.
 
     * ``angle_idx = (0,)``: ``x̃ = [θ, p, sin θ, cos θ]``; the model gets the raw ``[θ, p]``
       (:class:`KickedRotorModel` takes the sine itself), the policy ``[p, sin θ, cos θ]``.
@@ -113,29 +113,19 @@ def make_kicked_rotor_task(
     cost = SaturatingCost(
         W=np.diag([0.0, 1.0, 1.0, 1.0]) / cost_width**2, target=np.array([0.0, 0.0, 0.0, 1.0]), angle_idx=(0,)
     )
-    return Task(
+    return Problem(
         name=name,
-        sim_dim=2,
         model_dim=2,
         action_dim=1,
         dt=1.0,
         horizon=int(horizon),
         u_max=umax,
-        u_rand=umax,
-        init_mean=mean,
-        init_cov=cov,
         model_init_mean=mean,
         model_init_cov=cov,
-        obs_noise_std=_frozen(np.zeros(2), (2,), "obs_noise_std"),
         angle_idx=(0,),
         gp_input_idx=(0, 1),
         policy_input_idx=(1, 2, 3),
-        ode=None,
-        sim_to_model=lambda s: s,
-        fallen=None,
         cost=cost,
-        substeps=1,
-        preset="kicked_rotor",
     )
 
 
@@ -166,7 +156,7 @@ def kicked_rotor_system(setting: str = "chaotic", *, horizon: int | None = None)
     return task, model, policy
 
 
-def finite_time_lyapunov(key: jax.Array, task: Task, model, policy, *, num_particles: int = 256, horizon: int | None = None) -> jax.Array:
+def finite_time_lyapunov(key: jax.Array, task: Problem, model, policy, *, num_particles: int = 256, horizon: int | None = None) -> jax.Array:
     """(P,) finite-time maximal Lyapunov exponents (per step) of the closed, noisy loop.
 
     For each particle a tangent vector is pushed through the total Jacobian ``dx_{t+1}/dx_t``

@@ -11,8 +11,9 @@ exact gradient ``jax.grad(exact_objective)``.
   ``predict(z, variance) -> (mean, var or None)`` with ``noise_variance``, and for moment
   matching ``moments(mean_z, cov_z) -> GaussianMap`` (the exact linear map of the *latent*
   ``Fz + f0``; like §5.4 it adds no noise).
-* :func:`make_linear_gaussian_task` — a :class:`~pipps.tasks.base.Task` around it (no angles,
-  every state component is a GP and a policy input; there is no true-system ODE).
+* :func:`make_linear_gaussian_task` — the :class:`~pipps.tasks.base.Problem` around it (no angles,
+  every state component is a GP and a policy input; a planning problem only: there is no true
+  system to simulate).
 * :func:`exact_objective` / :func:`exact_trajectory` — the closed-form recursion
   ``μ' = Aμ + c``, ``Σ' = AΣAᵀ + s·diag(noise_var)`` with ``A = I + F_x + F_u W``,
   ``c = F_u b + f0`` for ``u = W x + b``, and ``J = Σ_{t=1..H} E[c(x_t)]``. The noise scale ``s``
@@ -33,7 +34,7 @@ from pipps.costs import SaturatingCost
 from pipps.gaussian import GaussianMap, linear_map
 from pipps.policies import LinearPolicy
 from pipps.systems.quadratic_cost import QuadraticCost
-from pipps.tasks.base import Cost, Task
+from pipps.tasks.base import Cost, Problem
 
 
 @register_dataclass
@@ -88,14 +89,13 @@ def make_linear_gaussian_task(
     target=None,
     u_max=None,
     name: str = "linear_gaussian",
-) -> Task:
-    """A :class:`Task` for a linear-Gaussian system (no angles; all components are GP and policy inputs).
+) -> Problem:
+    """The :class:`Problem` of a linear-Gaussian system (no angles; all components are GP and policy inputs).
 
     Args:
       state_dim, action_dim: D and F.
       horizon: H.
-      init_mean, init_cov: the start distribution (default 0 and 0.1²·I); used both as the
-        simulator and the planning start.
+      init_mean, init_cov: the planning start distribution (default 0 and 0.1²·I).
       cost: ``"quadratic"`` (:class:`QuadraticCost`, ``c = (x−z)ᵀQ(x−z)``, ``Q = cost_weight``),
         ``"saturating"`` (:class:`~pipps.costs.SaturatingCost`, ``W = cost_weight``), or a ready
         Cost object (then ``cost_weight`` and ``target`` must be None).
@@ -103,8 +103,8 @@ def make_linear_gaussian_task(
       target: (D,) z (default 0).
       u_max: (F,) control limit, only used by saturated policies (default 10).
 
-    The task has no ``ode`` (None): there is no true system to simulate, and ``task.step`` raises
-    :class:`NotImplementedError`.
+    A Problem only: its dynamics are :class:`LinearGaussianModel`, there is no true system to
+    simulate (no :class:`~pipps.tasks.base.Simulator`, so no ``rollout``).
     """
     D, F = int(state_dim), int(action_dim)
     if D < 1 or F < 1 or int(horizon) < 1:
@@ -129,33 +129,23 @@ def make_linear_gaussian_task(
         if cost_weight is not None or target is not None:
             raise ValueError("cost_weight/target are only used with a cost name")
         cost_obj = cost
-    return Task(
+    return Problem(
         name=name,
-        sim_dim=D,
         model_dim=D,
         action_dim=F,
         dt=1.0,
         horizon=int(horizon),
         u_max=umax,
-        u_rand=umax,
-        init_mean=mean,
-        init_cov=cov,
         model_init_mean=mean,
         model_init_cov=cov,
-        obs_noise_std=_frozen(np.zeros(D), (D,), "obs_noise_std"),
         angle_idx=(),
         gp_input_idx=tuple(range(D)),
         policy_input_idx=tuple(range(D)),
-        ode=None,
-        sim_to_model=lambda s: s,
-        fallen=None,
         cost=cost_obj,
-        substeps=1,
-        preset="linear_gaussian",
     )
 
 
-def closed_loop(task: Task, model: LinearGaussianModel, policy: LinearPolicy) -> tuple[jax.Array, jax.Array]:
+def closed_loop(task: Problem, model: LinearGaussianModel, policy: LinearPolicy) -> tuple[jax.Array, jax.Array]:
     """``(A, c)`` of the closed loop ``x' = A x + c + ε`` under ``u = W x[P] + b`` (unsaturated)."""
     if task.angle_idx:
         raise ValueError("the closed-form recursion needs a task without angle augmentation")
@@ -173,7 +163,7 @@ def closed_loop(task: Task, model: LinearGaussianModel, policy: LinearPolicy) ->
 
 
 def exact_trajectory(
-    task: Task,
+    task: Problem,
     model: LinearGaussianModel,
     policy: LinearPolicy,
     *,
@@ -203,7 +193,7 @@ def exact_trajectory(
 
 
 def exact_objective(
-    task: Task,
+    task: Problem,
     model: LinearGaussianModel,
     policy: LinearPolicy,
     *,

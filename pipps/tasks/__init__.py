@@ -1,6 +1,7 @@
 """The tasks: cart-pole swing-up/balancing and unicycle balancing (tasks.md §2–3).
 
-``make_task(name, preset, k, cost, **overrides)`` builds a :class:`Task`. The gymnasium
+``make_task(name, preset, k, cost, **overrides)`` builds a :class:`Task`: the planning
+:class:`Problem` (``task.problem``) and the true system, a :class:`Simulator` (``task.simulator``). The gymnasium
 environments (:mod:`pipps.tasks.envs`, ids ``pipps/CartPoleSwingUp-v0``, ``pipps/CartPoleBalance-v0``
 and ``pipps/Unicycle-v0``) are registered by :func:`register_envs`, or by naming the module in the
 id: ``gymnasium.make("pipps.tasks.envs:pipps/CartPoleSwingUp-v0")``. Importing this package does
@@ -8,7 +9,7 @@ neither and does not import gymnasium; ``ENV_IDS`` and ``PippsEnv`` load :mod:`p
 (and with it the registration) when first used.
 """
 
-from pipps.tasks.base import Cost, Task
+from pipps.tasks.base import Cost, Problem, Simulator, Task
 from pipps.tasks.cartpole import CartPoleParams, cartpole_energy, cartpole_ode
 from pipps.tasks.integrate import integrate_interval
 from pipps.tasks.presets import PRESETS, TASK_NAMES, make_task
@@ -46,6 +47,8 @@ __all__ = [
     "CartPoleParams",
     "Cost",
     "PippsEnv",
+    "Problem",
+    "Simulator",
     "Task",
     "UnicycleParams",
     "cartpole_energy",

@@ -1,20 +1,33 @@
-"""The task description shared by the simulator, the learner and the PILCO baseline.
+"""The planning problem, the true system, and the task that pairs them.
 
-A :class:`Task` is static configuration (a frozen dataclass of numbers and pure JAX
-functions), never a pytree: it is closed over by jitted code. It knows four
-representations of the state (tasks.md §0):
+Two frozen dataclasses of numbers and pure JAX functions, never pytrees (jitted code closes
+over them):
 
-* the simulator state ``s`` that the ODE integrates (``sim_dim`` components);
-* the model state ``x = sim_to_model(s)`` that the GP predicts and the cost is
-  defined on (``model_dim``);
+* :class:`Problem` — what the learner and PILCO plan on: the model state, the control, the
+  horizon, the planning start distribution, the cost and the input maps. Everything that only
+  plans (:mod:`pipps.particles`, :mod:`pipps.propagation`, :mod:`pipps.pilco`,
+  :mod:`pipps.systems`, :mod:`pipps.studies`, :mod:`pipps.stats`) takes a Problem.
+* :class:`Simulator` — the true system that produces data: the ODE, its integration, the
+  simulator start distribution, the observation noise, the random actions, the fall condition,
+  and ``sim_to_model``, the map from its state into the problem's model state.
+
+A :class:`Task` is one of each (``task.problem``, ``task.simulator``) with the same control
+interval ``dt``: what ``make_task`` builds, and what the true-system code (:mod:`pipps.rollout`,
+:mod:`pipps.tasks.envs`, the experiment programs) takes, since a rollout on the true system needs
+the problem's cost and policy input too. For reading, ``task.<field>`` forwards to the half that
+has the field (``task.horizon`` is ``task.problem.horizon``, ``task.step`` is
+``task.simulator.step``). A planning problem without a true system (the reference systems of
+:mod:`pipps.systems`, whose dynamics are their model) is a Problem only.
+
+The state has four representations (tasks.md §0):
+
+* the simulator state ``s`` that the ODE integrates (``Simulator.sim_dim`` components);
+* the model state ``x = sim_to_model(s)`` that the GP predicts and the cost is defined on
+  (``Problem.model_dim``);
 * the augmented model state ``x̃ = [x; sin x_a, cos x_a (a in angle_idx)]``;
 * the control ``u = u_max ⊙ sat(ũ)``.
 
 All index sets here are 0-based (tasks.md writes them 1-based).
-
-A planning problem without a true system (the reference systems of :mod:`pipps.systems`, whose
-dynamics are their model) has ``ode=None``; its :meth:`Task.step` raises. docs/architecture.md
-says what separating the simulator from the planning problem would take.
 """
 
 from __future__ import annotations
@@ -39,34 +52,22 @@ class Cost(Protocol):
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class Task:
-    """One task under one preset. See the module docstring for the state representations."""
+class Problem:
+    """The planning problem: model state, control, horizon, start, cost and input maps."""
 
     name: str
-    sim_dim: int
     model_dim: int
     action_dim: int
     dt: float
     horizon: int
     u_max: np.ndarray  # (action_dim,) control limits ū
-    u_rand: np.ndarray  # (action_dim,) random actions are U[-u_rand, u_rand], unsquashed
-    init_mean: np.ndarray  # (sim_dim,) simulator start mean μ0
-    init_cov: np.ndarray  # (sim_dim, sim_dim) simulator start covariance Σ0
     model_init_mean: np.ndarray  # (model_dim,) planning start mean μ0^x
     model_init_cov: np.ndarray  # (model_dim, model_dim) planning start covariance Σ0^x
-    obs_noise_std: np.ndarray  # (sim_dim,) observation noise std, already scaled by √k
     angle_idx: tuple[int, ...]  # model-state components augmented with (sin, cos)
     gp_input_idx: tuple[int, ...]  # indices into x̃ fed to the GP (the control is appended)
     policy_input_idx: tuple[int, ...]  # indices into x̃ fed to the policy
-    ode: Callable[[jax.Array, jax.Array], jax.Array] | None  # ṡ = ode(s, u); None: no true system
-    sim_to_model: Callable[[jax.Array], jax.Array]  # x = sim_to_model(s)
-    fallen: Callable[[jax.Array], jax.Array] | None  # True where s violates the constraint
     cost: Cost
-    substeps: int = 100  # integrator sub-steps per control interval (see integrate.py)
-    preset: str = "thesis"
-    noise_multiplier: float = 1.0  # k: observation noise variance is k·σ_base²
 
-    # -- state maps ------------------------------------------------------------------
     def augment(self, x: jax.Array) -> jax.Array:
         """x̃ = [x; sin x_a, cos x_a] with each angle's pair in (sin, cos) order (tasks.md §0)."""
         if not self.angle_idx:
@@ -96,19 +97,60 @@ class Task:
         """x̃[P], the policy input for model state x."""
         return self.augment(x)[..., jnp.asarray(self.policy_input_idx)]
 
-    # -- true system --------------------------------------------------------------------
-    def step(self, s: jax.Array, u: jax.Array) -> jax.Array:
-        """One control interval of the true system: integrate ṡ = ode(s, u) over dt, u held.
 
-        Raises:
-          NotImplementedError: the task is a planning problem only (``ode`` is None).
-        """
+@dataclasses.dataclass(frozen=True, eq=False)
+class Simulator:
+    """The true system: what a rollout integrates, observes and maps into the model state."""
+
+    name: str
+    sim_dim: int
+    dt: float  # the control interval; a Task's problem has the same
+    init_mean: np.ndarray  # (sim_dim,) simulator start mean μ0
+    init_cov: np.ndarray  # (sim_dim, sim_dim) simulator start covariance Σ0
+    obs_noise_std: np.ndarray  # (sim_dim,) observation noise std, already scaled by √k
+    u_rand: np.ndarray  # (action_dim,) random actions are U[-u_rand, u_rand], unsquashed
+    ode: Callable[[jax.Array, jax.Array], jax.Array]  # ṡ = ode(s, u)
+    sim_to_model: Callable[[jax.Array], jax.Array]  # x = sim_to_model(s), into the problem's model state
+    fallen: Callable[[jax.Array], jax.Array] | None  # True where s violates the constraint
+    substeps: int = 100  # integrator sub-steps per control interval (see integrate.py)
+    noise_multiplier: float = 1.0  # k: observation noise variance is k·σ_base²
+
+    def step(self, s: jax.Array, u: jax.Array) -> jax.Array:
+        """One control interval of the true system: integrate ṡ = ode(s, u) over dt, u held."""
         from pipps.tasks.integrate import integrate_interval
 
-        if self.ode is None:
-            raise NotImplementedError(
-                f"task {self.name!r} has no true-system ODE: it is a planning problem whose dynamics are its "
-                "model; use the model (particles, pipps.pilco, an exact objective), not Task.step or rollout"
-            )
-
         return integrate_interval(self.ode, s, u, self.dt, self.substeps)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Task:
+    """A planning problem and the true system it describes, under one preset.
+
+    ``task.<field>`` reads the field (or method) of whichever half has it, the problem first
+    (``name`` and ``dt``, which both have, agree); code that needs only one half takes that half.
+
+    Raises:
+      ValueError: the two halves disagree on ``dt`` or on the number of controls.
+    """
+
+    problem: Problem
+    simulator: Simulator
+    preset: str = "thesis"
+
+    def __post_init__(self):
+        if self.problem.dt != self.simulator.dt:
+            raise ValueError(f"problem and simulator differ in dt: {self.problem.dt} and {self.simulator.dt}")
+        if np.shape(self.simulator.u_rand) != (self.problem.action_dim,):
+            raise ValueError(f"simulator.u_rand must have shape ({self.problem.action_dim},) (the problem's "
+                             f"action_dim), got {np.shape(self.simulator.u_rand)}")
+
+    def __getattr__(self, attr: str):
+        # Only called when ordinary lookup fails: forward reads to the half that has the field.
+        if attr.startswith("__"):
+            raise AttributeError(attr)
+        for half in ("problem", "simulator"):
+            part = self.__dict__.get(half)
+            if part is not None and hasattr(part, attr):
+                return getattr(part, attr)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {attr!r} (neither its problem nor its "
+                             "simulator has it)")

@@ -5,7 +5,8 @@ One ``step`` is one control interval of tasks.md §1 step 2:
 * the action is the control ``u`` itself (the policy saturates its own output); it must
   be finite, of shape ``(action_dim,)`` and inside ``[-u_max, u_max]``, otherwise
   ``ValueError`` — actions are rejected, never clipped;
-* the true state advances by ``Task.step`` (zero-order hold, RK4; jitted once per env);
+* the true state advances by ``Simulator.step`` of the task's simulator (zero-order hold, RK4;
+  jitted once per env);
 * the observation is the true simulator state plus N(0, diag(obs_noise_std²)) noise,
   drawn from the env's ``np_random`` (k = 0 gives the true state exactly);
 * ``reward = −c(x(s_{t+1}))`` on the noise-free next model state (step 5);
@@ -54,12 +55,13 @@ ENV_IDS: dict[str, str] = {
 
 def _transition_fn(task: Task):
     """s, u ↦ (s', x(s'), c(x(s')), fallen(s')): the pure one-step map of the true system."""
+    sim, problem = task.simulator, task.problem
 
     def transition(s, u):
-        s_next = task.step(s, u)
-        x_next = task.sim_to_model(s_next)
-        fallen = task.fallen(s_next) if task.fallen is not None else jnp.asarray(False)
-        return s_next, x_next, task.cost(x_next), fallen
+        s_next = sim.step(s, u)
+        x_next = sim.sim_to_model(s_next)
+        fallen = sim.fallen(s_next) if sim.fallen is not None else jnp.asarray(False)
+        return s_next, x_next, problem.cost(x_next), fallen
 
     return transition
 
@@ -74,7 +76,8 @@ class PippsEnv(gymnasium.Env):
     """The true (simulated) system of a Task as a gymnasium environment (module docstring).
 
     Args:
-      task: a :class:`Task`, or a task name for :func:`make_task`.
+      task: a :class:`Task` (its simulator steps; its problem gives ``u_max``, the horizon and the
+        cost), or a task name for :func:`make_task`.
       preset, k, cost, **overrides: passed to :func:`make_task` when ``task`` is a name
         (``gymnasium.make("pipps/CartPoleSwingUp-v0", preset="pilco", k=0.01)``); defaults
         ``preset="thesis"``, ``k=1``. Not allowed together with a ready Task.
@@ -105,15 +108,16 @@ class PippsEnv(gymnasium.Env):
             raise ValueError("preset, k, cost and Task-field overrides apply only when the task is given by name")
         self.task = task
         self.render_mode = None
-        u_max = np.asarray(task.u_max, dtype=np.float64)
+        sim = task.simulator
+        u_max = np.asarray(task.problem.u_max, dtype=np.float64)
         self.action_space = spaces.Box(-u_max, u_max, dtype=np.float64)
-        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(task.sim_dim,), dtype=np.float64)
-        self._obs_std = np.asarray(task.obs_noise_std, dtype=np.float64)
-        self._init_mean = np.asarray(task.init_mean, dtype=np.float64)
-        self._init_factor = _sqrt_psd(np.asarray(task.init_cov, dtype=np.float64))
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(sim.sim_dim,), dtype=np.float64)
+        self._obs_std = np.asarray(sim.obs_noise_std, dtype=np.float64)
+        self._init_mean = np.asarray(sim.init_mean, dtype=np.float64)
+        self._init_factor = _sqrt_psd(np.asarray(sim.init_cov, dtype=np.float64))
         # compiled once per env; every step reuses the same executable
         self._transition = jax.jit(_transition_fn(task))
-        self._to_model = jax.jit(task.sim_to_model)
+        self._to_model = jax.jit(sim.sim_to_model)
         self.state: np.ndarray | None = None
         self._t = 0
         self._done = True
@@ -165,7 +169,7 @@ class PippsEnv(gymnasium.Env):
         self.state = np.array(s_next, dtype=np.float64)
         self._t += 1
         terminated = bool(fallen)
-        truncated = (not terminated) and self._t >= self.task.horizon
+        truncated = (not terminated) and self._t >= self.task.problem.horizon
         self._done = terminated or truncated
         obs = self._observe(self.state)
         cost = float(cost)

@@ -1,4 +1,4 @@
-"""Task presets: ``make_task(name, preset, k, cost, **overrides) -> Task``.
+"""Task presets: ``make_task(name, preset, k, cost, **overrides) -> Task``, a planning problem and its simulator.
 
 Two presets (experiments.md "Resolved choices"):
 
@@ -22,7 +22,7 @@ import numpy as np
 
 from pipps.tasks import cartpole as cp
 from pipps.tasks import unicycle as uc
-from pipps.tasks.base import Cost, Task
+from pipps.tasks.base import Cost, Problem, Simulator, Task
 
 TASK_NAMES: tuple[str, ...] = ("cartpole_swingup", "cartpole_balance", "unicycle")
 PRESETS: tuple[str, ...] = ("thesis", "pilco")
@@ -229,8 +229,12 @@ def _validate(f: dict[str, Any]) -> None:
         need(all(0 <= i < aug_dim for i in f[key]), f"{key} out of range [0, {aug_dim}): {f[key]}")
 
 
+def _fields_of(cls) -> tuple[str, ...]:
+    return tuple(f.name for f in dataclasses.fields(cls))
+
+
 def make_task(name: str, preset: str = "thesis", k: float = 1.0, cost: str | Cost | None = None, **overrides) -> Task:
-    """Build a :class:`Task` for ``name`` under ``preset``.
+    """Build the :class:`Task` (problem and simulator) for ``name`` under ``preset``.
 
     Args:
       name: one of ``TASK_NAMES``.
@@ -238,10 +242,10 @@ def make_task(name: str, preset: str = "thesis", k: float = 1.0, cost: str | Cos
       k: observation-noise variance multiplier, finite and >= 0; the std is √k·base std.
       cost: a cost name (cart-pole: ``"angle"``, thesis default, or ``"tip"``, pilco
         default; unicycle: ``"unicycle"``), or a ready Cost object (see :func:`make_cost`).
-      **overrides: replace any other Task field verbatim (e.g. ``horizon=10``,
+      **overrides: replace any other field of the problem or the simulator verbatim (e.g. ``horizon=10``,
         ``substeps=50``, ``obs_noise_std=...`` — the final std, not scaled by k). If ``dt``
         is overridden and ``substeps`` is not, ``substeps`` follows the new ``dt`` so the
-        sub-step stays at most ``MAX_SUBSTEP``.
+        sub-step stays at most ``MAX_SUBSTEP``. ``name`` and ``dt`` go to both halves.
 
     Raises:
       ValueError: unknown task, preset, cost or override name (listing the valid
@@ -250,7 +254,8 @@ def make_task(name: str, preset: str = "thesis", k: float = 1.0, cost: str | Cos
     _check_choice("task", name, TASK_NAMES)
     _check_choice("preset", preset, PRESETS)
     k = _check_k(k)
-    valid = tuple(f.name for f in dataclasses.fields(Task) if f.name not in _ARGUMENT_FIELDS)
+    both = _fields_of(Problem) + tuple(f for f in _fields_of(Simulator) if f not in _fields_of(Problem))
+    valid = tuple(f for f in both if f not in _ARGUMENT_FIELDS)
     for key in overrides:
         if key in _ARGUMENT_FIELDS:
             raise ValueError(f"set {key!r} through make_task's {_ARGUMENT_FIELDS[key]!r} argument, not as an override")
@@ -266,4 +271,7 @@ def make_task(name: str, preset: str = "thesis", k: float = 1.0, cost: str | Cos
     fields = _normalise(fields)
     _validate(fields)
     fields["cost"] = make_cost(name, cost, preset)
-    return Task(preset=preset, noise_multiplier=k, **fields)
+    fields["noise_multiplier"] = k
+    problem = Problem(**{f: fields[f] for f in _fields_of(Problem)})
+    simulator = Simulator(**{f: fields[f] for f in _fields_of(Simulator)})
+    return Task(problem, simulator, preset=preset)
