@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import pipps
+from machine import gemm_gflops  # benchmarks/machine.py
 from pipps.gp import GPConfig, GPHyper, full_posterior, make_data
 from pipps.particles.forward import RolloutConfig, particle_rollout, reparameterized_objective, sample_noise
 from pipps.policies import init_rbf_policy
@@ -88,20 +89,6 @@ def make_call(task, model, policy, name, overrides, P, T):
         return e.value, e.grad
 
     return jax.jit(g)
-
-
-def gemm_gflops(n: int = 512, reps: int = 9) -> float:
-    """Median float64 GEMM rate (Gflop/s) of an n×n product, measured now: the machine's speed in
-    the same run, so that the seconds above can be compared across machines."""
-    a = jax.random.normal(jax.random.PRNGKey(0), (n, n))
-    f = jax.jit(lambda x: x @ x)
-    f(a).block_until_ready()
-    times = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        f(a).block_until_ready()
-        times.append(time.perf_counter() - t)
-    return 2 * n**3 / np.median(times) / 1e9
 
 
 def time_call(fn, policy, repeats: int):

@@ -59,6 +59,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 import pipps
+from machine import gemm_gflops  # benchmarks/machine.py
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.combine import inverse_variance
 from pipps.propagation.config import compose, estimator
@@ -124,19 +125,6 @@ def rollout_config(name: str, P: int) -> RolloutConfig:
     if name in CARTPOLE_DELTAS:  # the thesis' TP rollout: the GP's variance, the experiment's horizon
         return RolloutConfig(num_particles=P, horizon=_cartpole_snapshot()[0].config.horizon)
     return RolloutConfig(num_particles=P, model_variance=False)
-
-
-def gemm_gflops(n: int = 512, reps: int = 9) -> float:
-    """Median float64 GEMM rate (Gflop/s) of an n×n product, measured now."""
-    a = jax.random.normal(jax.random.PRNGKey(0), (n, n))
-    f = jax.jit(lambda x: x @ x)
-    f(a).block_until_ready()
-    times = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        f(a).block_until_ready()
-        times.append(time.perf_counter() - t)
-    return 2 * n**3 / np.median(times) / 1e9
 
 
 def seconds_per_eval(name: str, P: int, est, calls: int = 15) -> float:
