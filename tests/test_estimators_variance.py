@@ -37,6 +37,7 @@ reliable, but those comparisons are decided by 8 or more orders of magnitude.
 import dataclasses
 import functools
 
+import direct_sweep
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -139,40 +140,21 @@ def test_kicked_rotor_rollout_is_the_controlled_standard_map():
 
 def _direct_tp(task, model, policy, noise, k, weighting, baseline):
     """Alg. 5 / estimators.md §4 written as plain loops over t and i, for a constant k_LR."""
-    theta0, unravel = ravel_pytree(policy)
-    s = np.sqrt(np.asarray(model.noise_variance))
-
-    def zeta_next(x, th):  # ζ_{t+1} = (μ, s) as a function of x_t and θ
-        u = unravel(th)(task.policy_input(x))
-        m, _ = model.predict(task.gp_input(x, u)[None])
-        return jnp.concatenate([x + m[0], jnp.asarray(s)])
-
-    dzeta_dx, dzeta_dth = jax.jit(jax.jacobian(zeta_next)), jax.jit(jax.jacobian(zeta_next, argnums=1))
-    dcost, zeta_next = jax.jit(jax.grad(task.cost)), jax.jit(zeta_next)
-    P, T = noise.x0.shape[0], noise.eps.shape[0]
-    xs, zetas = [np.asarray(noise.x0)], []
-    for t in range(T):
-        z = np.stack([np.asarray(zeta_next(xs[-1][i], theta0)) for i in range(P)])
-        zetas.append(z)
-        xs.append(z[:, :2] + z[:, 2:] * np.asarray(noise.eps[t]))
-    G, lam, grad = np.zeros(P), np.zeros((P, 4)), np.zeros(theta0.size)
-    for t in range(T, 0, -1):  # x_t = xs[t], ζ_t = zetas[t − 1]
-        x, mu, sd = xs[t], zetas[t - 1][:, :2], zetas[t - 1][:, 2:]
-        G = G + np.asarray(jax.vmap(task.cost)(x))
-        logp = np.array([[np.sum(-0.5 * ((x[j] - mu[i]) / sd[i]) ** 2 - np.log(sd[i])) for j in range(P)] for i in range(P)])
-        w = np.exp(logp - logp.max(0)) / np.exp(logp - logp.max(0)).sum(0) if weighting == "biw" else np.eye(P)
-        new_lam, g = np.zeros((P, 4)), np.zeros(theta0.size)
+    f = direct_sweep.forward(task, model, policy, noise)
+    dzeta_dx, dzeta_dth, dcost = direct_sweep.through_policy(task, f)
+    P, T, D = noise.x0.shape[0], noise.eps.shape[0], task.model_dim
+    lam, grad = np.zeros((P, 2 * D)), np.zeros(f.theta.size)
+    for t, x, mu, sd, G in direct_sweep.backward_steps(task, f):
+        w = direct_sweep.biw_weights(x, mu, sd) if weighting == "biw" else np.eye(P)
+        new_lam, g = np.zeros((P, 2 * D)), np.zeros(f.theta.size)
         for i in range(P):
             a = np.asarray(dcost(x[i]))
             if t < T:
-                a = a + lam[i] @ np.asarray(dzeta_dx(x[i], theta0))
+                a = a + lam[i] @ np.asarray(dzeta_dx(x[i], f.theta))
             gam_rp = np.concatenate([a, a * np.asarray(noise.eps[t - 1][i])])
             b = (G.sum() - G[i]) / (P - 1) if weighting == "plain" else baseline[t - 1]
-            gam_lr = sum(
-                w[i, j] * (G[j] - b) * np.concatenate([(x[j] - mu[i]) / sd[i] ** 2, ((x[j] - mu[i]) ** 2 - sd[i] ** 2) / sd[i] ** 3])
-                for j in range(P)
-            )
-            dzeta_dtheta = np.asarray(dzeta_dth(xs[t - 1][i], theta0))
+            gam_lr = direct_sweep.lr_zeta(i, w, G, b, x, mu, sd)
+            dzeta_dtheta = np.asarray(dzeta_dth(f.xs[t - 1][i], f.theta))
             g += (k * gam_lr + (1 - k) * gam_rp) @ dzeta_dtheta / P
             new_lam[i] = k * gam_lr + (1 - k) * gam_rp
         grad, lam = grad + g, new_lam
