@@ -52,7 +52,8 @@ def cartpole_model(n: int, seed: int = 0):
 
 
 VARIANTS = {
-    # name: (estimator name, None for autodiff or "forward" for the rollout alone, RolloutConfig overrides)
+    # label: (estimator name — or (name, estimator settings) —, None for autodiff or "forward" for
+    # the rollout alone; RolloutConfig overrides)
     "forward only (rollout + model Jacobians)": ("forward", {}),
     "autodiff (jax.value_and_grad)": (None, {}),
     "rp": ("rp", {}),
@@ -62,7 +63,9 @@ VARIANTS = {
     "lr_plain": ("lr_plain", {}),
     "tp": ("tp", {}),
     "tp −σ_f": ("tp", {"model_variance": False}),
+    "tp leave-one-out": (("tp", {"k_lr": "leave_one_out"}), {}),
     "tpx": ("tpx", {}),
+    "tpx leave-one-out": (("tpx", {"k_lr": "leave_one_out"}), {}),
     "gtp": ("gtp", {}),
     "glr": ("glr", {}),
     "del": ("del", {}),
@@ -81,7 +84,7 @@ def make_call(task, model, policy, name, overrides, P, T):
             return jax.value_and_grad(lambda p: reparameterized_objective(task, p, model, sample_noise(key, task, cfg), cfg))(pol)
 
         return jax.jit(f)
-    est = estimator(name)
+    est = estimator(name) if isinstance(name, str) else estimator(name[0], **name[1])
     state = init_estimator_state(jax.random.PRNGKey(123), policy, model, task=task, config=cfg, estimator=est)
 
     def g(key, pol):
