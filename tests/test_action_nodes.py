@@ -166,6 +166,7 @@ def test_tpx_with_exactly_unbiased_weights_is_unbiased(name, est):
     assert np.max(np.abs(z)) < bound
 
 
+@pytest.mark.slow
 def test_tpx_with_batch_weights_bias_is_reported():
     z, rel_bias, rel_se = _z_against_exact(estimator("tpx", k_lr="batch"), 30, seed=202)
     print(f"tpx batch P=30: z = {np.round(z, 2)}, rel. bias {rel_bias:.4f} (rel. SE {rel_se:.4f})")
