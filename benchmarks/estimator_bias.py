@@ -54,10 +54,10 @@ pipps.enable_float64()
 ESTIMATORS = {
     "lr thesis-baseline": (estimator("lr", baseline="thesis"), (30, 100, 300), "BIW-LR, eq. 4.3 baseline"),
     "lr (default)": (estimator("lr"), (30, 100, 300), "BIW-LR, previous baseline (unbiased control)"),
-    "tp thesis-baseline": (estimator("tp", baseline="thesis"), (30, 100, 300), "TP, eq. 4.3 baseline, previous k"),
+    "tp thesis-baseline": (estimator("tp", baseline="thesis", k_lr="previous"), (30, 100, 300), "TP, eq. 4.3 baseline, previous k"),
     "tp thesis preset": (thesis_estimator("tp"), (30, 100, 300), "TP, eq. 4.3 baseline, batch k (thesis)"),
     "tp k=batch": (estimator("tp", k_lr="batch"), (30, 100), "TP, previous baseline, batch k"),
-    "tp (default)": (estimator("tp"), (30, 100), "TP, previous baseline, previous k (unbiased control)"),
+    "tp previous": (estimator("tp", k_lr="previous"), (30, 100), "TP, previous baseline, previous k (unbiased control)"),
 }
 NOISE_STDS = (0.1, 0.3)
 COST = "saturating"

@@ -3,8 +3,8 @@
 One table, one row per (cell, rule). Cells: the kicked rotor of :mod:`pipps.systems.chaotic`
 ("chaotic" K = 2 and "smooth" K = 0.1, T = 30; docs/estimator-variance.md) at each P, and the
 linear-Gaussian reference system (noise 0.3, saturating cost, T = 10) whose exact gradient is known.
-Rules: RP and BIW-LR (the parts), TP with k_LR "previous" (library default), "batch" (thesis),
-"leave_one_out", "split", "cross_fit", "guarded", the robust combiner (γ = 1, z = 2, batch), and
+Rules: RP and BIW-LR (the parts), TP with k_LR "previous", "batch" (thesis),
+"leave_one_out" (the library default since issue 20), "split", "cross_fit", "guarded", the robust combiner (γ = 1, z = 2, batch), and
 "previous" and "leave_one_out" with ``messages="pathwise"`` (k mixes the contributions only; the
 pathwise message is passed back).
 
@@ -43,8 +43,8 @@ direction, Δ = 0 and 1.5; bias against BIW-LR on the same particles) — run on
 ``--rules``; the rows of the other rules do not change when rules are left out (every rule sees the
 same particles in a replicate):
 
-    JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py --rules "TP previous (default)" "TP batch (thesis)" \
-        "TP leave-one-out" "TPX previous" "TPX batch" "TPX leave-one-out" \
+    JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py --rules "TP previous" "TP batch (thesis)" \
+        "TP leave-one-out (default)" "TPX previous" "TPX batch" "TPX leave-one-out" \
         --cells chaotic smooth "linear-Gaussian 2u" "cart-pole Δ=0" "cart-pole Δ=1.5"
 """
 
@@ -76,16 +76,16 @@ pipps.enable_float64()
 RULES = {
     "RP": estimator("rp"),
     "BIW-LR": estimator("lr"),
-    "TP previous (default)": estimator("tp"),
+    "TP previous": estimator("tp", k_lr="previous"),
     "TP batch (thesis)": estimator("tp", k_lr="batch"),
-    "TP leave-one-out": estimator("tp", k_lr="leave_one_out"),
+    "TP leave-one-out (default)": estimator("tp", k_lr="leave_one_out"),
     "TP split": estimator("tp", k_lr="split"),
     "TP cross-fit (LOO pilot)": estimator("tp", k_lr="cross_fit"),
     "TP guarded": estimator("tp", k_lr="guarded"),
     "TP robust γ=1 (batch)": estimator("tp", combiner="robust", robust_gamma=1.0, k_lr="batch"),
     "TP previous, RP messages": compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance("previous", "pathwise")),
     "TP leave-one-out, RP messages": compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance("leave_one_out", "pathwise")),
-    "TPX previous": estimator("tpx"),
+    "TPX previous": estimator("tpx", k_lr="previous"),
     "TPX batch": estimator("tpx", k_lr="batch"),
     "TPX leave-one-out": estimator("tpx", k_lr="leave_one_out"),
 }

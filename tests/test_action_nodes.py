@@ -51,10 +51,10 @@ def system():
 
 
 def test_tpx_is_the_composition_it_claims_and_takes_k_lr_settings():
-    assert estimator("tpx") == compose(plain_costs(), pathwise(), biw_lr(), combiner=action_nodes("previous"))
+    assert estimator("tpx") == compose(plain_costs(), pathwise(), biw_lr(), combiner=action_nodes("leave_one_out"))
     assert estimator("tp", combiner="action_nodes", k_lr="batch") == estimator("tpx", k_lr="batch")
     assert estimator("tpx", k_lr=0.25).combiner == ActionNodes(FixedWeight(0.25))
-    assert estimator("tpx").needs_previous_k and not estimator("tpx", k_lr="leave_one_out").needs_previous_k
+    assert estimator("tpx", k_lr="previous").needs_previous_k and not estimator("tpx").needs_previous_k
     with pytest.raises(ValueError, match="takes no messages setting"):
         estimator("tpx", messages="pathwise")
     with pytest.raises(ValueError, match="belong to the robust combiner"):
@@ -77,7 +77,7 @@ def test_fixed_weights_reduce_tpx_to_rp_lr_and_tp(system):
 def test_previous_carries_one_weight_per_node(system):
     task, model, policy = system
     cfg = RolloutConfig(num_particles=16)
-    est = estimator("tpx")
+    est = estimator("tpx", k_lr="previous")
     st = init_estimator_state(jax.random.PRNGKey(9), policy, model, task=task, config=cfg, estimator=est)
     assert st.k_lr.shape == (task.horizon, 1 + task.action_dim)
     st1, e1 = estimate(jax.random.PRNGKey(3), st, policy, model, task=task, config=cfg, estimator=est)
@@ -155,7 +155,7 @@ def _z_against_exact(est, P: int, seed: int):
     return (mean - exact) / se, np.linalg.norm(mean - exact) / np.linalg.norm(exact), np.linalg.norm(se) / np.linalg.norm(exact)
 
 
-UNBIASED = [("previous", estimator("tpx")), ("cross_fit", estimator("tpx", k_lr="cross_fit"))]
+UNBIASED = [("previous", estimator("tpx", k_lr="previous")), ("cross_fit", estimator("tpx", k_lr="cross_fit"))]
 
 
 @pytest.mark.parametrize("name, est", UNBIASED, ids=[u[0] for u in UNBIASED])

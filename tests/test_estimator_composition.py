@@ -44,7 +44,8 @@ def one(system, est, key=3):
         (estimator("rp"), compose(plain_costs(), pathwise())),
         (estimator("lr"), compose(plain_costs(), biw_lr("previous"))),
         (estimator("lr_plain"), compose(plain_costs(), plain_lr())),
-        (estimator("tp"), compose(plain_costs(), biw_lr(), pathwise(), combiner=inverse_variance("previous"))),
+        (estimator("tp"), compose(plain_costs(), biw_lr(), pathwise(), combiner=inverse_variance("leave_one_out"))),
+        (estimator("tp", k_lr="previous"), compose(plain_costs(), biw_lr(), pathwise(), combiner=inverse_variance("previous"))),
         (estimator("gtp"), compose(shaped_costs(), pathwise(), biw_lr(), combiner=inverse_variance())),
         (estimator("glr"), compose(shaped_costs(), biw_lr())),
         (estimator("del"), compose(density_estimation_costs("previous"), pathwise(), combiner=single())),
@@ -61,7 +62,7 @@ def one(system, est, key=3):
         (estimator("tp", combiner="robust", robust_gamma=0.5), compose(plain_costs(), pathwise(), biw_lr(), combiner=robust(0.5))),
         (thesis_estimator("tp", combiner="robust", robust_z=1.0), compose(plain_costs(), pathwise(), biw_lr("thesis"), combiner=robust(z=1.0, k_lr="batch"))),
         (thesis_estimator("tp", k_lr=0.0), compose(plain_costs(), pathwise(), biw_lr("thesis"), combiner=inverse_variance(0.0))),
-        (estimator("tp", messages="pathwise"), compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance("previous", "pathwise"))),
+        (estimator("tp", messages="pathwise"), compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance("leave_one_out", "pathwise"))),
         (thesis_estimator("tp", messages="pathwise"), compose(plain_costs(), pathwise(), biw_lr("thesis"), combiner=inverse_variance("batch", "pathwise"))),
         (estimator("tp", combiner="robust", messages="pathwise"), compose(plain_costs(), pathwise(), biw_lr(), combiner=robust(messages="pathwise"))),
     ],
@@ -73,7 +74,7 @@ def test_names_and_settings_are_the_compositions_they_claim(built, composed):
 def test_the_descriptive_views_follow_the_pieces():
     assert NAMED == tuple(ESTIMATORS)
     tp, rp, lr, dl = estimator("tp"), estimator("rp"), estimator("lr"), estimator("del", baseline="none")
-    assert tp.total_propagation and tp.pathwise and tp.likelihood_ratio and tp.k_lr == "previous"
+    assert tp.total_propagation and tp.pathwise and tp.likelihood_ratio and tp.k_lr == "leave_one_out"
     assert rp.pathwise and not rp.likelihood_ratio and rp.k_lr is None and rp.baseline is None
     assert lr.likelihood_ratio and not lr.pathwise and lr.needs_previous_baseline
     assert dl.baseline == "none" and not dl.needs_previous_baseline and estimator("del").needs_previous_baseline

@@ -57,11 +57,11 @@ UNBIASED = {
     "lr_plain": estimator("lr_plain"),
     "lr_previous": estimator("lr"),
     "lr_none": estimator("lr", baseline="none"),
-    "tp_previous_kprevious": estimator("tp"),
-    "tp_none_kprevious": estimator("tp", baseline="none"),
+    "tp_previous_kprevious": estimator("tp", k_lr="previous"),
+    "tp_none_kprevious": estimator("tp", baseline="none", k_lr="previous"),
     "tp_previous_kfixed": estimator("tp", k_lr=0.5),
     "tp_none_kfixed": estimator("tp", baseline="none", k_lr=0.3),
-    "tp_plain_kprevious": estimator("tp", weighting="plain"),
+    "tp_plain_kprevious": estimator("tp", weighting="plain", k_lr="previous"),
 }
 BIASED = {
     "lr_thesis": estimator("lr", baseline="thesis"),

@@ -61,7 +61,7 @@ ESTIMATORS = {
     "rp": estimator("rp"),
     "lr_plain": estimator("lr_plain"),
     "lr": estimator("lr"),  # BIW-LR, "previous" baseline
-    "tp": estimator("tp"),  # library default: k_LR "previous"
+    "tp": estimator("tp", k_lr="previous"),  # the library default until issue 20 (now leave-one-out)
     "tp_batch": estimator("tp", k_lr="batch"),  # the thesis' k_LR (biased, estimators.md §4)
 }
 

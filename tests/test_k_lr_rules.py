@@ -322,7 +322,7 @@ def _chaos():
     task, model, policy = kicked_rotor_system("chaotic")
     ests = {
         "lr": estimator("lr"),
-        "previous": estimator("tp"),
+        "previous": estimator("tp", k_lr="previous"),
         "leave_one_out": estimator("tp", k_lr="leave_one_out"),
         "cross_fit": estimator("tp", k_lr="cross_fit"),
     }

@@ -13,8 +13,8 @@ Presets:
   (α = 5·10⁻⁴, γ = 0.9), 50-centre RBF policy with centres at the start mean plus N(0, I) (the
   author's demo; the start distribution itself does not learn, docs/results.md), the thesis'
   own estimator choices (eq. 4.3 baseline, same-batch k_LR), 30 evaluation rollouts.
-* ``pilco`` — the PILCO MATLAB task defaults (tasks.md §2–3) with the library's unbiased
-  estimator choices.
+* ``pilco`` — the PILCO MATLAB task defaults (tasks.md §2–3) with the library's estimator
+  choices (unbiased baselines; TP's leave-one-out k_LR).
 * ``quick`` — the thesis protocol shrunk for a few-minute CPU run: fewer trials, particles
   and policy evaluations, and the documented departure of experiments.md: RBF centres spread
   uniformly over the state box and wider initial length-scales.
@@ -101,7 +101,7 @@ class ExperimentConfig:
     policy_evals: int = 600  # policy evaluations (gradient estimates, or QN evaluations) per trial
     learning_rate: float = 5e-4
     momentum: float = 0.9
-    estimator_choices: str = "thesis"  # thesis: eq. 4.3 baseline and same-batch k_LR; library: unbiased
+    estimator_choices: str = "thesis"  # thesis: eq. 4.3 baseline and same-batch k_LR; library: "previous" baseline, leave-one-out k_LR
     noise_boost_tp: float = 100.0  # +σ_n factor on σ_n² for TP
     noise_boost_gtp: float = 25.0  # +σ_n factor for GTP
     progress_chunk: int = 50  # policy steps per compiled call (progress granularity)

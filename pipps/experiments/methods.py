@@ -26,7 +26,8 @@ del        DEL         density-estimation LR (§6)
 =========  ==========  ============================================================================
 
 With ``estimator_choices="thesis"`` the LR parts use the thesis' eq. 4.3 baseline and TP its
-same-batch ``k_LR`` (biased, docs/estimator-bias.md); ``"library"`` uses the unbiased defaults.
+same-batch ``k_LR`` (biased, docs/estimator-bias.md); ``"library"`` uses the library defaults (the
+unbiased "previous" baseline, and for TP the leave-one-out ``k_LR``, docs/estimator-variance.md).
 A method whose estimator is the same either way (RP, DEL) does not use ``estimator_choices``.
 
 **A setting a method does not use** cannot change its experiment. It is left out of the
