@@ -53,6 +53,11 @@ _BUILT = {"gr": lambda: estimator("rp"), "tp": lambda: estimator("tp", k_lr="pre
           "gtp": lambda: estimator("gtp", k_lr="previous"), "tp_loo": lambda: estimator("tp")}
 
 
+def built(name: str):
+    """The suite's estimator called ``name``."""
+    return _BUILT[name]() if name in _BUILT else estimator(name)
+
+
 def flat(tree) -> np.ndarray:
     return np.asarray(ravel_pytree(tree)[0])
 
@@ -120,7 +125,7 @@ class Outcome(NamedTuple):
 @functools.lru_cache(maxsize=None)
 def _programs(name: str, cfg: RolloutConfig):
     """(estimator, jitted init, jitted step) per (estimator, rollout config): compiled once per shape."""
-    est = _BUILT[name]() if name in _BUILT else estimator(name)
+    est = built(name)
     opt = normalized_momentum(1e-2, 0.9)
     init = jax.jit(functools.partial(init_policy_opt_state, task=TASK, config=cfg, estimator=est, optimizer=opt))
     return est, init, make_policy_update(TASK, cfg, est, opt)
@@ -174,7 +179,7 @@ def assert_contained(out: Outcome) -> None:
         assert np.all(np.isfinite(np.asarray(leaf))), f"{out.name}: non-finite {jax.tree_util.keystr(path)} reached the state"
     info, d = out.info, out.info.diagnostics
     assert np.isfinite(info.value) and np.isfinite(info.particle_objective), f"{out.name}: objective {info.value}"
-    est = estimator("rp" if out.name == "gr" else out.name)
+    est = built(out.name)
     k, var_rp, var_lr, flagged = (np.asarray(a) for a in (d.k_lr, d.var_rp, d.var_lr, d.nonfinite))
     assert np.all((k >= 0.0) & (k <= 1.0)), f"{out.name}: k_lr outside [0, 1]: {k}"
     # a part that is off reports NaN, never a number that could be mistaken for a measurement
@@ -281,7 +286,7 @@ def test_overflowing_pathwise_gradient_is_refused_and_reported(name):
     finite and is applied (TP and GTP restart RP's chain at every step)."""
     outs = contained(base_updates(name, 100, variant="weights_extreme"))
     skipped = [bool(o.info.skipped) for o in outs]
-    est = _BUILT[name]() if name in _BUILT else estimator(name)
+    est = built(name)
     if est.likelihood_ratio:
         assert not any(skipped), f"{name}: skipped {skipped}"
         assert all(np.isfinite(grad_norm(o)) for o in outs)
