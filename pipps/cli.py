@@ -54,7 +54,10 @@ def _layout(args, experiments: int) -> str:
 
     workers, width = cpu_layout(args.jobs, max(experiments, 1), available_cpus())
     where = "this process" if workers == 1 else f"{workers} pinned worker(s)"
-    return f"{where} × {width if workers > 1 else available_cpus()} CPU(s)"
+    layout = f"{where} × {width if workers > 1 else available_cpus()} CPU(s)"
+    if getattr(args, "batched", False):  # each cell's seeds as one batch here; the rest as above
+        return f"each cell's seeds as one batch in this process (--batched; what cannot batch: {layout})"
+    return layout
 
 
 def _nonnegative_float(text: str) -> float:
