@@ -274,14 +274,19 @@ class Single:
 Source = BatchWeight | PreviousWeight | FixedWeight | GuardedWeight | LeaveOneOutWeight | SplitWeight
 
 
+def _no_weight_on_nonfinite(k, var_rp, var_lr):
+    """k with the guards of estimators.md §4: a part whose variance is not finite gets no weight
+    (both not finite: ``k`` as it is, and the caller's update refuses the step)."""
+    k = jnp.where(jnp.isfinite(var_rp), k, 1.0)
+    return jnp.where(jnp.isfinite(var_lr), k, jnp.where(jnp.isfinite(var_rp), 0.0, k))
+
+
 def _total_propagation(rule, g, messages, k_previous, has_previous) -> Combined:
     """Steps 5–7 of estimators.md §4 for parts (pathwise, LR); a non-finite part gets no weight."""
     g_rp, g_lr = g[0], g[1]
     var_rp, var_lr = variance_trace(g_rp), variance_trace(g_lr)
     k_batch = rule.batch_weight(var_rp, var_lr, g_rp.mean(0), g_lr.mean(0), g_rp.shape[0])
-    k = rule.source.weight(rule, g_rp, g_lr, k_batch, k_previous, has_previous)
-    k = jnp.where(jnp.isfinite(var_rp), k, 1.0)
-    k = jnp.where(jnp.isfinite(var_lr), k, jnp.where(jnp.isfinite(var_rp), 0.0, k))
+    k = _no_weight_on_nonfinite(rule.source.weight(rule, g_rp, g_lr, k_batch, k_previous, has_previous), var_rp, var_lr)
     kp = k[:, None] if k.ndim == 1 else k  # one weight per particle, or one for the step
     if messages is None:
         message = None
@@ -292,15 +297,10 @@ def _total_propagation(rule, g, messages, k_previous, has_previous) -> Combined:
     return Combined(jnp.mean(k), k_batch, (var_rp, var_lr), mix(kp, g_lr, g_rp), message)
 
 
-class _TotalPropagationCombiner:
-    """What the two total-propagation combiners share: two parts, ``k_LR`` from their ``source``,
-    and the combination of :func:`_total_propagation`; each defines its own ``batch_weight``."""
+class _WeighsTwoParts:
+    """What every combiner of a pathwise and an LR part shares: its weights come from ``source``."""
 
     num_parts = 2
-
-    def weight_shape(self, num_actions: int) -> tuple:
-        del num_actions
-        return ()  # one weight per step
 
     @property
     def k_lr(self):
@@ -309,6 +309,15 @@ class _TotalPropagationCombiner:
     @property
     def uses_previous_k(self) -> bool:
         return self.source.uses_previous_k
+
+
+class _TotalPropagationCombiner(_WeighsTwoParts):
+    """What the two total-propagation combiners share: two parts, ``k_LR`` from their ``source``,
+    and the combination of :func:`_total_propagation`; each defines its own ``batch_weight``."""
+
+    def weight_shape(self, num_actions: int) -> tuple:
+        del num_actions
+        return ()  # one weight per step
 
     def combine(self, kinds, parts, k_previous, has_previous) -> Combined:
         del kinds
@@ -346,7 +355,7 @@ class Robust(_TotalPropagationCombiner):
 
 
 @strategy(traced=("source",))
-class ActionNodes:
+class ActionNodes(_WeighsTwoParts):
     """Total propagation at the action nodes (the idea of TPX, Parmas, Seno and Aoki 2023; derived for
     this sweep in docs/estimators.md, "Combination at the action nodes").
 
@@ -371,15 +380,6 @@ class ActionNodes:
     source: Source
 
     name = "action_nodes"
-    num_parts = 2
-
-    @property
-    def k_lr(self):
-        return self.source.k_lr
-
-    @property
-    def uses_previous_k(self) -> bool:
-        return self.source.uses_previous_k
 
     def weight_shape(self, num_actions: int) -> tuple:
         return (1 + num_actions,)  # [state paths, action coordinates]
@@ -392,9 +392,7 @@ class ActionNodes:
         """The source's weight for one node from the parts' (P, n) values there, with TP's guards."""
         var_rp, var_lr = variance_trace(g_rp), variance_trace(g_lr)
         k_batch = self.batch_weight(var_rp, var_lr, None, None, g_rp.shape[0])
-        k = self.source.weight(self, g_rp, g_lr, k_batch, k_previous, has_previous)
-        k = jnp.where(jnp.isfinite(var_rp), k, 1.0)
-        k = jnp.where(jnp.isfinite(var_lr), k, jnp.where(jnp.isfinite(var_rp), 0.0, k))
+        k = _no_weight_on_nonfinite(self.source.weight(self, g_rp, g_lr, k_batch, k_previous, has_previous), var_rp, var_lr)
         return k, k_batch, var_rp, var_lr
 
     def combine(self, kinds, parts, k_previous, has_previous) -> Combined:
