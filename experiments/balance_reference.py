@@ -71,9 +71,7 @@ PROCESS = (1e-3, 1e-2, 1e-1, 1.0)
 
 def linearise(sim):
     """(A, B): the discrete step s_{t+1} = step(s_t, u_t) linearised at upright, u = 0."""
-    s, u = jnp.asarray(UPRIGHT), jnp.zeros(1)
-    A = jax.jacobian(sim.step, argnums=0)(s, u)
-    B = jax.jacobian(sim.step, argnums=1)(s, u)
+    A, B = jax.jit(jax.jacfwd(sim.step, argnums=(0, 1)))(jnp.asarray(UPRIGHT), jnp.zeros(1))
     return np.asarray(A), np.asarray(B)
 
 
