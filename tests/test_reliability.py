@@ -242,6 +242,26 @@ def test_a_sweep_skips_what_another_process_finished_and_never_reruns_it(fake_lo
     assert report.ran == [str(tmp_path / f"{experiment_name(cfgs[1])}.h5")] and str(path) in report.skipped
 
 
+def test_a_sweep_releases_each_experiments_compiled_programs(fake_loop, tmp_path, monkeypatch):
+    """A long in-process sweep must not keep every experiment's compiled programs: their memory
+    mappings accumulate until the kernel refuses more (a thesis sweep died after seven experiments).
+    Released after every experiment, a failed one included."""
+    import jax
+
+    calls = []
+    monkeypatch.setattr(jax, "clear_caches", lambda: calls.append(1))
+    cfgs = [resolve_config("quick", "cartpole_swingup", seed=s) for s in range(3)]
+    report = run_sweep(cfgs, tmp_path, jobs=1)
+    assert len(report.ran) == 3 and len(calls) == 3
+
+    def broken(cfg, **kwargs):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(loop, "run_experiment", broken)
+    cfg = resolve_config("quick", "cartpole_swingup", seed=7)
+    assert _run_one(cfg, str(tmp_path / "x.h5"))[1] == "failed" and len(calls) == 4
+
+
 def test_sweeps_with_other_settings_refuse_the_folder(fake_loop, tmp_path, capsys):
     args = ["sweep", "--table", "4.1", "--k", "1", "--methods", "tp", "--seeds", "1", "--preset", "quick",
             "--out", tmp_path]
