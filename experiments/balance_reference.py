@@ -94,20 +94,24 @@ def kalman_gain(A, obs_var, w):
     return P @ np.linalg.inv(P + V)
 
 
-def deviation(s):
-    """s − s* with the angle wrapped into (−π, π], so either swing direction counts as upright."""
-    d = s - jnp.asarray(UPRIGHT)
+def wrap_angle(d):
+    """``d`` with its angle coordinate wrapped into [−π, π), so either swing direction counts as upright."""
     return d.at[..., 3].set(jnp.mod(d[..., 3] + math.pi, 2 * math.pi) - math.pi)
 
 
-def make_runner(task, horizon: int, switch: int, learned=None, bounds=((BALANCE_ANGLE, BALANCE_POSITION),)):
-    """A compiled ``run(keys, K, L, A, B) -> (balanced_controller, balanced_learned)``: one rollout per
-    key, each output (len(bounds), keys) flags, judged with each ``(angle, position)`` of ``bounds``
-    over the last ``BALANCE_STEPS`` states.
+def deviation(s):
+    """s − s*, the angle wrapped."""
+    return wrap_angle(s - jnp.asarray(UPRIGHT))
 
-    Steps ``t < switch`` use ``learned`` (a policy on the problem's policy input) or, without one,
-    the controller; steps ``t ≥ switch`` use the controller (first output) or keep ``learned``
-    (second output, None without ``learned``). The start is the simulator's start distribution when
+
+def make_runner(task, horizon: int, switch: int, learned=None, bounds=((BALANCE_ANGLE, BALANCE_POSITION),)):
+    """Compiled ``(run, own)``: ``run(keys, K, L, A, B)`` gives one rollout per key with the controller,
+    ``own(keys)`` (None without ``learned``) the same rollouts with ``learned`` throughout; each
+    returns (len(bounds), keys) flags, judged with each ``(angle, position)`` of ``bounds`` over
+    the last ``BALANCE_STEPS`` states.
+
+    In ``run``, steps ``t < switch`` use ``learned`` (a policy on the problem's policy input) or,
+    without one, the controller; steps ``t ≥ switch`` use the controller. The start is the simulator's start distribution when
     ``learned`` is given, else upright at rest. ``L = I`` is the static controller (the estimate is
     the current observation)."""
     sim, problem = task.simulator, task.problem
@@ -130,8 +134,7 @@ def make_runner(task, horizon: int, switch: int, learned=None, bounds=((BALANCE_
             o = s + eps
             dev = deviation(o)
             # the filter starts at the first controlled step from the observation itself
-            innov = dev - xhat_prior
-            innov = innov.at[3].set(jnp.mod(innov[3] + math.pi, 2 * math.pi) - math.pi)
+            innov = wrap_angle(dev - xhat_prior)
             xhat = jnp.where(started, xhat_prior + L @ innov, dev)
             u_ctrl = jnp.clip(-(K @ xhat), -U_MAX, U_MAX)
             controller = (t >= switch) & use_controller_late if learned is not None else jnp.asarray(True)
@@ -146,11 +149,14 @@ def make_runner(task, horizon: int, switch: int, learned=None, bounds=((BALANCE_
 
     @jax.jit
     def run(keys, K, L, A, B):
-        ctrl = jax.vmap(lambda k: one(k, K, L, A, B, True), out_axes=1)(keys)
-        own = jax.vmap(lambda k: one(k, K, L, A, B, False), out_axes=1)(keys) if learned is not None else ctrl
-        return ctrl, own
+        return jax.vmap(lambda k: one(k, K, L, A, B, True), out_axes=1)(keys)
 
-    return run
+    if learned is None:
+        return run, None
+    # the controller's K, L, A, B: never acting here, any of the right shapes
+    unused = jnp.zeros((1, sim.sim_dim)), jnp.eye(sim.sim_dim), jnp.eye(sim.sim_dim), jnp.zeros((sim.sim_dim, 1))
+    own = jax.jit(lambda keys: jax.vmap(lambda k: one(k, *unused, False), out_axes=1)(keys))
+    return run, own
 
 
 def designs(A, B, obs_var, filtered: bool):
@@ -181,7 +187,7 @@ def bounds_text(bounds) -> str:
 def best_design(run, A, B, obs_var, filtered, keys):
     best = None
     for label, K, L in designs(A, B, obs_var, filtered):
-        ctrl, _ = run(keys, jnp.asarray(K), jnp.asarray(L), jnp.asarray(A), jnp.asarray(B))
+        ctrl = run(keys, jnp.asarray(K), jnp.asarray(L), jnp.asarray(A), jnp.asarray(B))
         score = float(np.mean(ctrl[0]))  # the first bounds are the ones a design is chosen for
         if best is None or score > best[0]:
             best = (score, label, K, L)
@@ -200,11 +206,11 @@ def choose(k: float, select: int, report: int, select_key, report_key, bounds):
     task = make_task("cartpole_swingup", preset="thesis", k=k)
     A, B = linearise(task.simulator)
     obs_var = np.asarray(task.simulator.obs_noise_std) ** 2
-    run = make_runner(task, task.problem.horizon, 0, bounds=bounds)
+    run, _ = make_runner(task, task.problem.horizon, 0, bounds=bounds)
     chosen = {}
     for filtered in (False, True):
         _, label, K, L = best_design(run, A, B, obs_var, filtered, jax.random.split(select_key, select))
-        ctrl, _ = run(jax.random.split(report_key, report), jnp.asarray(K), jnp.asarray(L), jnp.asarray(A), jnp.asarray(B))
+        ctrl = run(jax.random.split(report_key, report), jnp.asarray(K), jnp.asarray(L), jnp.asarray(A), jnp.asarray(B))
         chosen[filtered] = (label, K, L, np.asarray(ctrl))
     return chosen
 
@@ -245,9 +251,8 @@ def main(argv=None) -> None:
         print(f"\n({args.select} rollouts per design to choose, {args.report} independent ones reported; "
               f"{time.perf_counter() - t0:.0f} s)")
         return
-    from jax.flatten_util import ravel_pytree
-
-    from pipps.experiments.state import init_policy, make_experiment_task
+    from pipps.experiments.criteria import policy_unraveler
+    from pipps.experiments.state import make_experiment_task
 
     print("\nScenario handover: each file's final policy for the first H − 10 steps from the start distribution, then "
           "the file's own policy or the controller chosen above for its k; the same rollouts (starts, noise) for all three")
@@ -257,16 +262,15 @@ def main(argv=None) -> None:
     for path, res in results:
         cfg = res.config
         task = make_experiment_task(cfg)
-        unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task.problem))[1]
-        policy = unravel(jnp.asarray(res.trials[-1].policy))
+        policy = policy_unraveler(cfg, task.problem)(jnp.asarray(res.trials[-1].policy))
         H = task.problem.horizon
         A, B = linearise(task.simulator)
-        run = make_runner(task, H, H - BALANCE_STEPS, policy, bounds)
-        flags = {}
+        run, own = make_runner(task, H, H - BALANCE_STEPS, policy, bounds)
+        keys = jax.random.split(handover_key, args.report)
+        flags = {"own": own(keys)}
         for filtered in (False, True):
             _, K, L, _ = chosen[float(cfg.k)][filtered]
-            flags[filtered], flags["own"] = run(jax.random.split(handover_key, args.report), jnp.asarray(K),
-                                                jnp.asarray(L), jnp.asarray(A), jnp.asarray(B))
+            flags[filtered] = run(keys, jnp.asarray(K), jnp.asarray(L), jnp.asarray(A), jnp.asarray(B))
         name = str(path).rsplit("/", 1)[-1]
         cells = [rate_text(flags[who][i]) for i in range(len(bounds)) for who in ("own", False, True)]
         print(f"| {name} | " + " | ".join(cells) + " |", flush=True)

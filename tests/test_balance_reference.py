@@ -69,11 +69,11 @@ def k1_runner():
     A, B = br.linearise(task.simulator)
     K = br.lqr_gain(A, B, (1, 0.1, 0, 1), 1e-2)
     var = np.asarray(task.simulator.obs_noise_std) ** 2
-    run = br.make_runner(task, task.problem.horizon, 0)
+    run, _ = br.make_runner(task, task.problem.horizon, 0)
     keys = jax.random.split(jax.random.PRNGKey(1), 64)
 
     def rate(L):
-        flags, _ = run(keys, jnp.asarray(K), jnp.asarray(L), jnp.asarray(A), jnp.asarray(B))
+        flags = run(keys, jnp.asarray(K), jnp.asarray(L), jnp.asarray(A), jnp.asarray(B))
         return float(np.mean(np.asarray(flags)))
 
     return rate, A, var

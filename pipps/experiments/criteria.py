@@ -88,6 +88,17 @@ def evaluation_keys(cfg, index: int):
     return keys(cfg, index)
 
 
+def policy_unraveler(cfg, problem):
+    """``flat -> policy``: the map from a stored flat policy vector (``TrialResult.policy``) back to the
+    policy ``cfg`` learns on ``problem`` (its structure is that of the initial policy)."""
+    import jax
+    from jax.flatten_util import ravel_pytree
+
+    from pipps.experiments.state import init_policy
+
+    return ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, problem))[1]
+
+
 class Resimulator:
     """Re-runs stored policies on the true system: a trial's own evaluation rollouts (same keys, so
     the returns must match the stored ones to rounding) or ``fresh`` independent ones. One compiled
@@ -99,14 +110,13 @@ class Resimulator:
     def _program(self, cfg, balance=None):
         import jax
 
-        from pipps.experiments.loop import balance_settings, evaluate_rollouts, init_policy, make_experiment_task
-        from jax.flatten_util import ravel_pytree
+        from pipps.experiments.loop import balance_settings, evaluate_rollouts, make_experiment_task
 
         balance = balance_settings(cfg) if balance is None else tuple(balance)
         key = (cfg.task, cfg.preset, cfg.k, cfg.cost, cfg.cost_scale, cfg.horizon, cfg.policy, cfg.num_basis, balance)
         if key not in self._programs:
             task = make_experiment_task(cfg)
-            unravel = ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, task.problem))[1]
+            unravel = policy_unraveler(cfg, task.problem)
             run = jax.jit(lambda keys, flat: evaluate_rollouts(keys, task, unravel(flat), balance))
             self._programs[key] = run
         return self._programs[key]

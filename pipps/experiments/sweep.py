@@ -105,7 +105,8 @@ class SweepReport:
 def release_compiled() -> None:
     """Drop every compiled program this process holds (``jax.clear_caches``) once an experiment is done.
 
-    A sweep runs many experiments in one process (in place, in a pool worker, in a Ray worker), and
+    A sweep runs many experiments in one process (in place, or in a pool worker; Ray starts a fresh
+    worker per task, where this costs nothing), and
     the presets compile new programs every trial (the GP's exact data size). Each compiled program
     keeps its own memory mappings, never released while it is cached: a k = 9 sweep process died after
     seven thesis-preset experiments with "LLVM ERROR: Unable to allocate section memory", its
