@@ -187,6 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--custom", action="store_true",
                     help="also count results whose settings depart from the preset (each table names them)")
     tb.add_argument("--curves", action="store_true", help="also print every result's evaluated return per trial")
+    tb.add_argument("--seeds", action="store_true",
+                    help="also print, per cell, every seed's final return and fraction of rollouts balanced (upright)")
 
     pl = sub.add_parser("plot", help="write a rerun recording (.rrd) of results or a study; --png renders it",
                         description="Writes a rerun recording of experiment results (files or folders) or of one study "
@@ -421,7 +423,8 @@ def _result_paths(items):
 
 def _cmd_table(args) -> int:
     from pipps.experiments.results import ResultError, read_summary
-    from pipps.experiments.tables import TABLES, collect, counts, get_table, judge_counted, render_curves, render_table
+    from pipps.experiments.tables import (TABLES, collect, counts, get_table, judge_counted, render_curves, render_seeds,
+                                         render_table)
 
     paths = _result_paths(args.results)
     try:
@@ -445,6 +448,9 @@ def _cmd_table(args) -> int:
             print(render_table(t, cells))
             print()
             printed += 1
+            if args.seeds and any(c.n for c in cells):
+                print(render_seeds(t, counted, preset=args.preset, custom=args.custom))
+                print()
     if args.curves and summaries:
         print("Evaluated return per trial (trial 0 is the random trial):\n")
         print(render_curves(counted))

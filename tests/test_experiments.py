@@ -34,7 +34,8 @@ from pipps.experiments.results import (
 )
 from pipps.experiments.sweep import (accelerator_installed, cpu_layout, experiment_name, ray_task, run_sweep,
                                      worker_pool)
-from pipps.experiments.tables import TABLES, collect, render_curves, render_table, table_configs, wilson_interval
+from pipps.experiments.tables import (TABLES, collect, render_curves, render_seeds, render_table, table_configs,
+                                     wilson_interval)
 
 TINY = dict(num_learned=1, num_particles=8, policy_evals=6, eval_rollouts=3, gp_max_iters=10, progress_chunk=3,
             store_particles=4)
@@ -158,6 +159,19 @@ def test_table_counts_cells_and_flags_disagreement():
     assert "pools results whose settings differ in centre_std" in render_table(TABLES["4.1"], mixed)
     empty = render_table(TABLES["4.4"], collect(TABLES["4.4"], summaries))  # cart-pole results only
     assert empty == "**Table 4.4 — unicycle balancing**: no complete results for this table."
+
+
+def test_seed_rows_list_each_counted_seed_in_order_with_both_counts():
+    cfgs = table_configs("4.1", 6, "thesis", methods=["tp"], ks=[9.0])
+    summaries = [{"config": c, "success": c.seed == 4, "return_success": c.seed < 3, "final_return": 12.0 + c.seed / 4,
+                  "final_balanced": 0.1 * c.seed, "wall_seconds": 60.0} for c in cfgs if c.seed != 3]
+    summaries.reverse()  # the rows come out in seed order whatever the order read
+    summaries.append(dict(summaries[0], config=summaries[0]["config"].replace(centre_std=None)))  # not counted
+    text = render_seeds(TABLES["4.1"], summaries).splitlines()
+    assert text[2].count("|") == 8 and len(text) == 5
+    assert text[4] == ("| k = 9 | TP | 0–2, 4–5 | 12.00, 12.25, 12.50, 13.00, 13.25 | 0.00, 0.10, 0.20, 0.40, 0.50 "
+                       "| 1 / 5 | 3 / 5 |")
+    assert render_seeds(TABLES["4.4"], summaries) == ""
 
 
 def test_curves_show_each_trial_and_the_unicycles_final_upright_fraction():
@@ -588,8 +602,9 @@ def test_cli_table_reads_results_and_skips_corrupt(tiny_result, tmp_path, capsys
     result.config = cfg.replace(num_learned=1)
     write_result(folder / "a.h5", result)
     (folder / "broken.h5").write_bytes(b"not hdf5")
-    assert main(["table", str(folder), "--table", "4.1", "--curves", "--custom"]) == 0
+    assert main(["table", str(folder), "--table", "4.1", "--curves", "--seeds", "--custom"]) == 0
     out = capsys.readouterr().out
+    assert f"| k = 1 | TP | 0 | {result.final_return:.2f} |" in out  # the seed rows (render_seeds)
     curve_row = next(line for line in out.splitlines() if line.startswith("| cartpole_swingup TP k=1 seed 0 |"))
     assert curve_row.split("|")[3:5] == [f" {t.eval_return:.1f} " for t in result.trials]
     row = next(line for line in out.splitlines() if line.startswith("| k = 1 |"))

@@ -449,3 +449,41 @@ def render_curves(summaries: list[dict[str, Any]]) -> str:
         lines.append(f"| {c.task} {METHODS[c.method].label} k={c.k:g} seed {c.seed} | {'yes' if s['success'] else 'no'}{ret} | "
                      + " | ".join(vals) + f" | {s['eval_return'][-1]:.1f} ± {se:.1f} | {frac} | {s['wall_seconds'] / 60:.0f} |")
     return "\n".join(lines)
+
+
+def _seed_ranges(seeds: list[int]) -> str:
+    """``[0, 1, 2, 5, 7, 8]`` -> ``"0–2, 5, 7–8"``."""
+    parts, start = [], None
+    for i, seed in enumerate(seeds):
+        if start is None:
+            start = seed
+        if i + 1 == len(seeds) or seeds[i + 1] != seed + 1:
+            parts.append(f"{start}" if start == seed else f"{start}–{seed}")
+            start = None
+    return ", ".join(parts)
+
+
+def render_seeds(table: Table, summaries: list[dict[str, Any]], preset: str | None = "thesis",
+                 custom: bool = False) -> str:
+    """Markdown: one row per cell with results, its seeds in order with each seed's final evaluated
+    return (the mean of the final trial's evaluation rollouts) and the fraction of those rollouts that
+    meet the physical criterion (balanced: cart-pole; upright: unicycle), then the cell's count by the
+    criterion and, for the cart-pole, by the thesis' return threshold. ``summaries`` must have
+    passed through :func:`judge` (``final_balanced``); the cells count as in :func:`collect`."""
+    lines = []
+    for cell in table.cells:
+        rows = cell_summaries(table, cell, summaries, preset, custom)
+        if not rows:
+            continue
+        judged = [s for s in rows if s.get("return_success") is not None]
+        by_return = f"{sum(bool(s['return_success']) for s in judged)} / {len(judged)}" if judged else "–"
+        lines.append(f"| {cell.row} | {METHODS[cell.method].label} | {_seed_ranges([s['config'].seed for s in rows])} | "
+                     + ", ".join(f"{s['final_return']:.2f}" for s in rows) + " | "
+                     + ", ".join(f"{s['final_balanced']:.2f}" for s in rows) + " | "
+                     + f"{sum(bool(s['success']) for s in rows)} / {len(rows)} | {by_return} |")
+    if not lines:
+        return ""
+    return "\n".join([f"**{table.title}**, every counted seed: final returns, the final trial's fraction of rollouts "
+                      "meeting the physical criterion, and the counts", "",
+                      "| | method | seeds | final returns | balanced / upright fractions | physical | return < threshold |",
+                      "|---|---|---|---|---|---|---|", *lines])
