@@ -486,3 +486,17 @@ def test_env_construction_errors():
     env = T.PippsEnv(make_task("cartpole_swingup"))
     with pytest.raises(gymnasium.error.ResetNeeded):
         env.step(np.zeros(1))
+
+
+def test_reference_systems_name_their_bad_parameters():
+    from pipps.systems import make_linear_gaussian_task
+    from pipps.systems.chaotic import make_kicked_rotor_task
+
+    with pytest.raises(ValueError, match=r"init_mean must have shape \(2,\), got \(3,\)"):
+        make_kicked_rotor_task(init_mean=(0.5, 0.0, 0.0))
+    with pytest.raises(ValueError, match="init_std must be finite"):
+        make_kicked_rotor_task(init_std=(0.05, float("nan")))
+    with pytest.raises(ValueError, match=r"init_cov must have shape \(3, 3\), got \(2, 2\)"):
+        make_linear_gaussian_task(3, 1, init_cov=np.eye(2))
+    with pytest.raises(ValueError, match="u_max must be finite"):
+        make_linear_gaussian_task(3, 1, u_max=float("inf"))

@@ -40,6 +40,7 @@ from jax.tree_util import register_dataclass
 from pipps.costs import SaturatingCost
 from pipps.particles.forward import RolloutConfig, sample_noise
 from pipps.policies import LinearPolicy
+from pipps.systems.linear_gaussian import frozen
 from pipps.tasks.base import Problem
 
 
@@ -73,16 +74,6 @@ class KickedRotorModel:
         return mean, (jnp.zeros_like(mean) if variance else None)
 
 
-def _frozen(a, shape, name) -> np.ndarray:
-    arr = np.array(a, dtype=np.float64)
-    if arr.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite")
-    arr.setflags(write=False)
-    return arr
-
-
 def make_kicked_rotor_task(
     *,
     horizon: int = 30,
@@ -106,10 +97,10 @@ def make_kicked_rotor_task(
         raise ValueError(f"horizon must be >= 1, got {horizon}")
     if not cost_width > 0 or not u_max > 0:
         raise ValueError(f"cost_width and u_max must be > 0, got {cost_width}, {u_max}")
-    mean = _frozen(init_mean, (2,), "init_mean")
-    std = _frozen(init_std, (2,), "init_std")
-    cov = _frozen(np.diag(std**2), (2, 2), "init_cov")
-    umax = _frozen([u_max], (1,), "u_max")
+    mean = frozen(init_mean, (2,), "init_mean")
+    std = frozen(init_std, (2,), "init_std")
+    cov = frozen(np.diag(std**2), (2, 2), "init_cov")
+    umax = frozen([u_max], (1,), "u_max")
     cost = SaturatingCost(
         W=np.diag([0.0, 1.0, 1.0, 1.0]) / cost_width**2, target=np.array([0.0, 0.0, 0.0, 1.0]), angle_idx=(0,)
     )

@@ -67,7 +67,9 @@ class LinearGaussianModel:
         return linear_map(mean_z, cov_z, self.F, self.f0)
 
 
-def _frozen(a, shape, name) -> np.ndarray:
+def frozen(a, shape, name) -> np.ndarray:
+    """A read-only float64 copy of ``a``, checked to have ``shape`` and finite entries (the reference
+    systems' fixed parameters; ``name`` names the parameter in the error)."""
     arr = np.array(a, dtype=np.float64)
     if arr.shape != shape:
         raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
@@ -109,11 +111,11 @@ def make_linear_gaussian_task(
     D, F = int(state_dim), int(action_dim)
     if D < 1 or F < 1 or int(horizon) < 1:
         raise ValueError(f"need state_dim, action_dim, horizon >= 1, got {D}, {F}, {horizon}")
-    mean = _frozen(np.zeros(D) if init_mean is None else init_mean, (D,), "init_mean")
-    cov = _frozen(0.01 * np.eye(D) if init_cov is None else init_cov, (D, D), "init_cov")
+    mean = frozen(np.zeros(D) if init_mean is None else init_mean, (D,), "init_mean")
+    cov = frozen(0.01 * np.eye(D) if init_cov is None else init_cov, (D, D), "init_cov")
     if not np.allclose(cov, cov.T, rtol=0, atol=1e-12) or np.linalg.eigvalsh(cov).min() < -1e-12:
         raise ValueError("init_cov must be symmetric positive semi-definite")
-    umax = _frozen(10.0 * np.ones(F) if u_max is None else np.atleast_1d(u_max), (F,), "u_max")
+    umax = frozen(10.0 * np.ones(F) if u_max is None else np.atleast_1d(u_max), (F,), "u_max")
     if np.any(umax <= 0):
         raise ValueError(f"u_max must be > 0, got {umax}")
     if isinstance(cost, str):
