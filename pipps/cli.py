@@ -187,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--custom", action="store_true",
                     help="also count results whose settings depart from the preset (each table names them)")
     tb.add_argument("--curves", action="store_true", help="also print every result's evaluated return per trial")
-    tb.add_argument("--seeds", action="store_true",
+    tb.add_argument("--per-seed", action="store_true",
                     help="also print, per cell, every seed's final return and fraction of rollouts balanced (upright)")
 
     pl = sub.add_parser("plot", help="write a rerun recording (.rrd) of results or a study; --png renders it",
@@ -448,7 +448,7 @@ def _cmd_table(args) -> int:
             print(render_table(t, cells))
             print()
             printed += 1
-            if args.seeds and any(c.n for c in cells):
+            if args.per_seed and any(c.n for c in cells):
                 print(render_seeds(t, counted, preset=args.preset, custom=args.custom))
                 print()
     if args.curves and summaries:

@@ -9,7 +9,8 @@ cached program keeps its own memory mappings, and one pytest process over the wh
 crash in native code near its end, the pattern of a process at Linux's mapping limit
 (``vm.max_map_count``, 65,530). Modules rarely share programs, so little is compiled twice. With
 ``PIPPS_TEST_MAPS=FILE`` the session appends, per module, the process's mapping count before and
-after the release to FILE (README, "Tests", quotes such a record).
+after the release to FILE, with the xdist worker that ran it (``main`` without xdist; README,
+"Quick start", quotes a one-process record).
 """
 
 import os
@@ -19,6 +20,8 @@ import pytest
 import pipps
 
 pipps.enable_float64()
+
+_MAPS_LOG = os.path.abspath(os.environ["PIPPS_TEST_MAPS"]) if os.environ.get("PIPPS_TEST_MAPS") else None
 
 
 def _mappings() -> int:
@@ -36,7 +39,7 @@ def _release_compiled_after_module(request):
 
     before = _mappings()
     release_compiled()
-    log = os.environ.get("PIPPS_TEST_MAPS")
-    if log:
-        with open(log, "a") as f:
-            f.write(f"{request.node.nodeid}\t{before}\t{_mappings()}\n")
+    if _MAPS_LOG:
+        with open(_MAPS_LOG, "a") as f:
+            worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+            f.write(f"{request.node.nodeid}\t{worker}\t{before}\t{_mappings()}\n")

@@ -602,7 +602,7 @@ def test_cli_table_reads_results_and_skips_corrupt(tiny_result, tmp_path, capsys
     result.config = cfg.replace(num_learned=1)
     write_result(folder / "a.h5", result)
     (folder / "broken.h5").write_bytes(b"not hdf5")
-    assert main(["table", str(folder), "--table", "4.1", "--curves", "--seeds", "--custom"]) == 0
+    assert main(["table", str(folder), "--table", "4.1", "--curves", "--per-seed", "--custom"]) == 0
     out = capsys.readouterr().out
     assert f"| k = 1 | TP | 0 | {result.final_return:.2f} |" in out  # the seed rows (render_seeds)
     curve_row = next(line for line in out.splitlines() if line.startswith("| cartpole_swingup TP k=1 seed 0 |"))

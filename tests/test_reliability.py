@@ -424,9 +424,10 @@ def _trial_entries(path) -> dict:
 
 def _one_file_per_writer(files) -> list:
     """The committed files that differ in what wrote them: the first file of each (recorded code
-    commit, task, method, resumed or not), and every file from before commits were recorded (their
-    writer is unknown). New files of a running sweep add no new writer, so the default run's cost
-    stays flat as the results folder grows; the slow run checks every file."""
+    commit, task, method, resumed or not), and every file whose writer is not one known commit (none
+    recorded, ``unknown``, or a ``+dirty`` tree). More files from the same sweep add nothing, so the
+    default run grows by at most one file per (commit, task, method, resumed), not per result; the
+    slow run checks every file."""
     chosen, seen = [], set()
     for p in files:
         with h5py.File(p, "r") as f:
@@ -434,7 +435,7 @@ def _one_file_per_writer(files) -> list:
             config = json.loads(f.attrs["config_json"])
             resumed = len(f.attrs.get("resumed_at", [])) > 0
         key = (code, config["task"], config["method"], resumed)
-        if code is None or key not in seen:
+        if code is None or code == "unknown" or str(code).endswith("+dirty") or key not in seen:
             seen.add(key)
             chosen.append(p)
     return chosen

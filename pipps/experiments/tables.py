@@ -452,7 +452,7 @@ def render_curves(summaries: list[dict[str, Any]]) -> str:
 
 
 def _seed_ranges(seeds: list[int]) -> str:
-    """``[0, 1, 2, 5, 7, 8]`` -> ``"0–2, 5, 7–8"``."""
+    """Sorted, distinct seeds as ranges: ``[0, 1, 2, 5, 7, 8]`` -> ``"0–2, 5, 7–8"``."""
     parts, start = [], None
     for i, seed in enumerate(seeds):
         if start is None:
