@@ -1,0 +1,32 @@
+"""Per learned trial of particle-method result files: the true return against the model's objective at
+the last policy step, the median gradient norm, non-finite and skipped steps, and where the recorded
+rollout left the pole and the cart (docs/results.md, the flat-cost plateaus of k = 16 TP seed 2 and
+k = 9 TP seed 17).
+
+    python experiments/trial_traces.py results/thesis/cartpole_swingup_angle_k16_tp_thesis_s2.h5
+
+Unfinished files are read too (no checksum verification). Cart-pole state order [x, v, ω, θ].
+"""
+
+import sys
+
+import numpy as np
+
+from pipps.experiments.results import read_result
+
+
+def main(paths) -> None:
+    for path in paths:
+        print(path)
+        for t in read_result(path, verify=False).trials:
+            if t.kind != "learned":
+                continue
+            trace, states = t.opt_trace, np.asarray(t.states)
+            print(f"  trial {t.index:03d}: return {t.eval_return:.2f}  model {float(trace.particle_objective[-1]):.2f}  "
+                  f"median |grad| {np.median(trace.grad_norm):.2g}  non-finite {int(np.sum(t.diagnostics.nonfinite_steps))}  "
+                  f"skipped {int(np.sum(trace.skipped))}  max |θ| {np.abs(states[:, 3]).max():.2f}  "
+                  f"cart end {states[-1, 0]:.1f} m")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
