@@ -54,17 +54,20 @@ from pipps.systems import (
 from pipps.tasks.base import Problem
 from pipps.tasks.presets import make_task
 
-N_MC = 1_000_000
-FAMILY_ALPHA = 1e-3
-FD_STEP = 1e-4  # tasks.md §7.1
-FD_TOL = 1e-6
+from moment_checks import (  # tests/moment_checks.py, shared with test_costs.py
+    FAMILY_ALPHA,
+    FD_STEP,
+    FD_TOL,
+    N_MC,
+    assert_fd,
+    checkgrad,
+    moments_of_variance_z,
+    normal_samples,
+    sym_from_tril,
+    tril_of,
+)
 
-
-# -- helpers (as in tests/test_costs.py) ----------------------------------------------------------
-
-
-def normal_samples(seed, n, dim):
-    return np.asarray(jax.random.normal(jax.random.key(seed), (n, dim), dtype=jnp.float64))
+# -- helpers ----------------------------------------------------------------------------------------
 
 
 def gaussian_samples(seed, mean, cov, n=N_MC):
@@ -85,42 +88,6 @@ def assert_mc(z, label):
     bound = z_bound(z.size, FAMILY_ALPHA)
     print(f"MC {label}: max z = {np.max(z):.2f} over {z.size} entries (bound {bound:.2f})")
     assert np.max(z) < bound, (label, np.max(z), bound)
-
-
-def sym_from_tril(v, dim):
-    rows, cols = np.tril_indices(dim)
-    low = jnp.zeros((dim, dim), v.dtype).at[rows, cols].set(v)
-    return low + low.T - jnp.diag(jnp.diagonal(low))
-
-
-def tril_of(m):
-    return jnp.asarray(m)[np.tril_indices(m.shape[0])]
-
-
-def checkgrad(f, p):
-    """tasks.md §7.1: per output, d = ‖g_fd − g‖/‖g_fd + g‖ with central step 1e-4 (NaN: not testable)."""
-    p = jnp.asarray(p)
-
-    @jax.jit
-    def both(p):
-        steps = FD_STEP * jnp.eye(p.size, dtype=p.dtype)
-        g = jax.jacfwd(f)(p).reshape(-1, p.size)
-        fd = (jax.vmap(f)(p + steps) - jax.vmap(f)(p - steps)) / (2 * FD_STEP)
-        return g, fd.reshape(p.size, -1).T
-
-    g, g_fd = (np.asarray(a) for a in both(p))
-    num = np.linalg.norm(g_fd - g, axis=1)
-    den = np.linalg.norm(g_fd + g, axis=1)
-    d = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
-    untestable = (np.abs(g_fd).max(axis=1) < 1e-5) & (d > 1e-3)
-    return np.where(untestable, np.nan, d)
-
-
-def assert_fd(d, label):
-    finite = d[np.isfinite(d)]
-    print(f"FD {label}: max d = {np.max(finite):.2e} over {finite.size} testable outputs of {d.size}")
-    assert finite.size > 0.5 * d.size, (label, finite.size, d.size)
-    assert np.max(finite) < FD_TOL, (label, np.max(finite))
 
 
 def random_cov(rng, dim, scale, ridge=0.05):
@@ -263,7 +230,7 @@ def test_saturation_gradients_match_finite_differences():
     def f(p):
         return flat(saturation_moments(p[:F], sym_from_tril(p[F:], F), u_max))
 
-    assert_fd(checkgrad(f, jnp.concatenate([jnp.asarray(mean), tril_of(cov)])), "saturation")
+    assert_fd(checkgrad(f, jnp.concatenate([jnp.asarray(mean), tril_of(cov)]))[0], "saturation")
 
 
 # ================================================================================================
@@ -337,7 +304,7 @@ def test_controller_gradients_match_finite_differences(kind):
         g = control_moments(unravel(p[D + n_tril:]), p[:D], sym_from_tril(p[D:D + n_tril], D))
         return flat(g)
 
-    assert_fd(checkgrad(f, jnp.concatenate([jnp.asarray(mean), tril_of(cov), theta])), f"controller {kind}")
+    assert_fd(checkgrad(f, jnp.concatenate([jnp.asarray(mean), tril_of(cov), theta]))[0], f"controller {kind}")
 
 
 # ================================================================================================
@@ -440,7 +407,7 @@ def test_gp_moments_gradients_match_finite_differences(kind):
         return flat(gp_moments(unravel(p[n_in:]), p[:dz], sym_from_tril(p[dz:n_in], dz)))
 
     p0 = jnp.concatenate([jnp.asarray(mean), tril_of(cov), theta])
-    assert_fd(checkgrad(f, p0), f"GP {kind} wrt (μ, Σ, posterior)")
+    assert_fd(checkgrad(f, p0)[0], f"GP {kind} wrt (μ, Σ, posterior)")
 
 
 # ================================================================================================
@@ -529,7 +496,7 @@ def test_propagation_step_gradients_match_finite_differences():
         m, S = propagate(task, unravel(p[D + n_tril:]), post, p[:D], sym_from_tril(p[D:D + n_tril], D))
         return jnp.concatenate([m, S.ravel()])
 
-    assert_fd(checkgrad(f, jnp.concatenate([mean, tril_of(cov), theta])), "propagation step (cart-pole)")
+    assert_fd(checkgrad(f, jnp.concatenate([mean, tril_of(cov), theta]))[0], "propagation step (cart-pole)")
 
 
 @pytest.mark.parametrize("preset", ["pilco", pytest.param("thesis", marks=pytest.mark.slow)])
@@ -676,9 +643,7 @@ def test_quadratic_cost_moments_against_monte_carlo():
     x, _ = gaussian_samples(71, mean, cov)
     c = np.asarray(cost(jnp.asarray(x)))
     e, v = cost.expected(jnp.asarray(mean), jnp.asarray(cov))
-    n = len(c)
-    z_e = abs(c.mean() - float(e)) / (c.std(ddof=1) / np.sqrt(n))
-    z_v = abs(c.var(ddof=1) - float(v)) / np.sqrt((np.mean((c - c.mean()) ** 4) - c.var(ddof=1) ** 2) / n)
+    z_e, z_v = moments_of_variance_z(c, float(e), float(v))
     print(f"MC quadratic cost: z(E) = {z_e:.2f}, z(Var) = {z_v:.2f} (bound {z_bound(2, FAMILY_ALPHA):.2f})")
     assert max(z_e, z_v) < z_bound(2, FAMILY_ALPHA), (z_e, z_v)
     assert float(cost.expected(jnp.asarray(mean), jnp.zeros((4, 4)))[0]) == pytest.approx(float(cost(jnp.asarray(mean))))
