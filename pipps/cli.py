@@ -186,7 +186,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "preset, or whose settings depart from it, are listed as not counted")
     tb.add_argument("--custom", action="store_true",
                     help="also count results whose settings depart from the preset (each table names them)")
-    tb.add_argument("--curves", action="store_true", help="also print every result's evaluated return per trial")
+    tb.add_argument("--curves", action="store_true", help="also print every result's evaluated return per trial, and "
+                    "per cell its median and quartiles over the seeds")
     tb.add_argument("--per-seed", action="store_true",
                     help="also print, per cell, every seed's final return and fraction of rollouts balanced (upright)")
 
@@ -423,8 +424,8 @@ def _result_paths(items):
 
 def _cmd_table(args) -> int:
     from pipps.experiments.results import ResultError, read_summary
-    from pipps.experiments.tables import (TABLES, collect, counts, get_table, judge_counted, render_curves, render_seeds,
-                                         render_table)
+    from pipps.experiments.tables import (TABLES, collect, counts, get_table, judge_counted, render_cell_curves,
+                                         render_curves, render_seeds, render_table)
 
     paths = _result_paths(args.results)
     try:
@@ -450,6 +451,9 @@ def _cmd_table(args) -> int:
             printed += 1
             if args.per_seed and any(c.n for c in cells):
                 print(render_seeds(t, counted, preset=args.preset, custom=args.custom))
+                print()
+            if args.curves and any(c.n for c in cells):
+                print(render_cell_curves(t, counted, preset=args.preset, custom=args.custom))
                 print()
     if args.curves and summaries:
         print("Evaluated return per trial (trial 0 is the random trial):\n")

@@ -34,8 +34,8 @@ from pipps.experiments.results import (
 )
 from pipps.experiments.sweep import (accelerator_installed, cpu_layout, experiment_name, ray_task, run_sweep,
                                      worker_pool)
-from pipps.experiments.tables import (TABLES, collect, render_curves, render_seeds, render_table, table_configs,
-                                     wilson_interval)
+from pipps.experiments.tables import (TABLES, collect, render_cell_curves, render_curves, render_seeds, render_table,
+                                     table_configs, wilson_interval)
 
 TINY = dict(num_learned=1, num_particles=8, policy_evals=6, eval_rollouts=3, gp_max_iters=10, progress_chunk=3,
             store_particles=4)
@@ -172,6 +172,24 @@ def test_seed_rows_list_each_counted_seed_in_order_with_both_counts():
     assert text[4] == ("| k = 9 | TP | 0–2, 4–5 | 12.00, 12.25, 12.50, 13.00, 13.25 | 0.00, 0.10, 0.20, 0.40, 0.50 "
                        "| 1 / 5 | 3 / 5 |")
     assert render_seeds(TABLES["4.4"], summaries) == ""
+
+
+
+def test_cell_curves_give_each_cells_median_and_quartiles_per_trial():
+    """The curves figure's median and band as numbers: percentiles over the counted seeds, per trial."""
+    cfgs = table_configs("4.1", 4, "thesis", methods=["tp", "pilco"], ks=[9.0])
+    returns = {0: [30.0, 20.0, 10.0], 1: [30.0, 22.0, 14.0], 2: [30.0, 24.0, 12.0], 3: [30.0, 26.0, 16.0]}
+    summaries = [{"config": c, "eval_return": np.array(returns[c.seed]) + (5.0 if c.method == "pilco" else 0.0)}
+                 for c in cfgs]
+    summaries.append(dict(summaries[0], config=summaries[0]["config"].replace(centre_std=None),
+                          eval_return=np.array([0.0, 0.0, 0.0])))  # not counted
+    lines = render_cell_curves(TABLES["4.1"], summaries).splitlines()
+    assert lines[2] == "| | method | seeds | 0 | 1 | 2 |" and lines[3].count("|---") == 6 and len(lines) == 6
+    rows = {line.split(" | ")[1]: line for line in lines[4:]}
+    # trial 1 over seeds (20, 22, 24, 26): median 23, quartiles 21.5 and 24.5 (linear interpolation)
+    assert rows["TP"] == "| k = 9 | TP | 4 | 30.00 [30.00, 30.00] | 23.00 [21.50, 24.50] | 13.00 [11.50, 14.50] |"
+    assert rows["PILCO"].startswith("| k = 9 | PILCO | 4 | 35.00 [35.00, 35.00] | 28.00 [26.50, 29.50] |")
+    assert render_cell_curves(TABLES["4.4"], summaries) == ""
 
 
 def test_curves_show_each_trial_and_the_unicycles_final_upright_fraction():

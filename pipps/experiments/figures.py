@@ -22,7 +22,7 @@ import numpy as np
 from pipps import charts as ch
 from pipps.experiments.methods import METHODS
 from pipps.experiments.records import ExperimentResult, MomentPrediction, ParticlePrediction
-from pipps.experiments.tables import Cell, CellResult, Table
+from pipps.experiments.tables import Cell, CellResult, Table, quartiles, seed_returns
 
 PANEL = (480.0, 340.0)
 #: one colour per experiment group in the diagnostics figure
@@ -102,18 +102,6 @@ def record_cells(tables: list[tuple[Table, list[CellResult]]], out: str | Path) 
 
 
 # -- learning curves per cell -----------------------------------------------------------------------------
-
-
-def seed_returns(summaries: list[dict[str, Any]]) -> np.ndarray:
-    """(seeds, trials) evaluated returns over the trials every seed has."""
-    n = min(len(s["eval_return"]) for s in summaries)
-    return np.array([np.asarray(s["eval_return"][:n], dtype=float) for s in summaries])
-
-
-def quartiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(25th percentile, median, 75th percentile) over the seeds (axis 0), per trial (linear interpolation)."""
-    q = np.percentile(values, [25.0, 50.0, 75.0], axis=0)
-    return q[0], q[1], q[2]
 
 
 def curves_figure(table: Table, cells: list[tuple[Cell, list[dict[str, Any]]]]) -> ch.Figure:

@@ -451,6 +451,38 @@ def render_curves(summaries: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def seed_returns(summaries: list[dict[str, Any]]) -> np.ndarray:
+    """(seeds, trials) evaluated returns over the trials every seed has."""
+    n = min(len(s["eval_return"]) for s in summaries)
+    return np.array([np.asarray(s["eval_return"][:n], dtype=float) for s in summaries])
+
+
+def quartiles(values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(25th percentile, median, 75th percentile) over the seeds (axis 0), per trial (linear interpolation)."""
+    q = np.percentile(values, [25.0, 50.0, 75.0], axis=0)
+    return q[0], q[1], q[2]
+
+
+def render_cell_curves(table: Table, summaries: list[dict[str, Any]], preset: str | None = "thesis",
+                       custom: bool = False) -> str:
+    """Markdown: per cell with results, the median and the 25th and 75th percentiles over its seeds of
+    the evaluated return per trial — the curves figure's bold line and band, as numbers. Cells count
+    as in :func:`collect`."""
+    cells = [(cell, cell_summaries(table, cell, summaries, preset, custom)) for cell in table.cells]
+    cells = [(cell, rows) for cell, rows in cells if rows]
+    if not cells:
+        return ""
+    returns = [seed_returns(rows) for _, rows in cells]
+    n = max(r.shape[1] for r in returns)
+    lines = [f"**{table.title}**, evaluated return per trial over each cell's seeds: median [25th, 75th percentile]", "",
+             "| | method | seeds | " + " | ".join(str(i) for i in range(n)) + " |", "|---" * (n + 3) + "|"]
+    for (cell, rows), r in zip(cells, returns):
+        q25, med, q75 = quartiles(r)
+        vals = [f"{m:.2f} [{a:.2f}, {b:.2f}]" for a, m, b in zip(q25, med, q75)] + [""] * (n - r.shape[1])
+        lines.append(f"| {cell.row} | {METHODS[cell.method].label} | {len(rows)} | " + " | ".join(vals) + " |")
+    return "\n".join(lines)
+
+
 def _seed_ranges(seeds: list[int]) -> str:
     """Sorted, distinct seeds as ranges: ``[0, 1, 2, 5, 7, 8]`` -> ``"0–2, 5, 7–8"``."""
     parts, start = [], None
