@@ -111,20 +111,28 @@ def main(argv=None) -> None:
     by_cell = defaultdict(list)
     for res, r in finals:
         by_cell[(r[0], r[1])].append((res, r))
+    differ = []  # (cell, bounds, seeds whose verdict at these bounds differs from the criterion's)
     for (k, m), items in sorted(by_cell.items()):
         rates = []
         for a, p in bounds:
-            ok = 0
-            for res, r in items:
+            passed = []
+            for res, r in sorted(items, key=lambda x: x[1][2]):
                 _, _, flags = sim.trial(res, len(res.trials) - 1, balance=(res.config.balance_steps, a, p))
-                ok += float(np.mean(flags)) >= r[6]
-            rates.append(f"{ok}/{len(items)}")
+                if float(np.mean(flags)) >= r[6]:
+                    passed.append(r[2])
+            rates.append(f"{len(passed)}/{len(items)}")
+            moved = sorted(set(passed) ^ {r[2] for _, r in items if r[5] >= r[6]})
+            if moved and (a, p) != (items[0][0].config.balance_angle, items[0][0].config.balance_position):
+                differ.append(((k, m), (a, p), moved, passed))
         print(f"| {k:g} | {METHODS[m].label} | {len(items)} | " + " | ".join(rates) + " |")
+    for (k, m), (a, p), moved, passed in differ:
+        print(f"  k = {k:g}, {METHODS[m].label}, at {a:g} : {p:g}: the verdict differs from the criterion's on seed(s) "
+              + ", ".join(f"{s} ({'passes' if s in passed else 'fails'})" for s in moved))
     if args.fresh:
         print(f"\nFinal policies re-simulated with {args.fresh} independent rollouts each:")
         print("| k | method | seed | stored: return, balanced | fresh: return ± SE, balanced | verdict holds |")
         print("|---|---|---|---|---|---|")
-        for res, r in finals:
+        for res, r in sorted(finals, key=lambda x: (x[1][0], x[1][1], x[1][2])):
             ret, _, flags = sim.trial(res, len(res.trials) - 1, fresh=args.fresh)
             f_ok, s_ok = float(np.mean(flags)) >= r[6], r[5] >= r[6]
             se = float(np.std(ret, ddof=1) / np.sqrt(ret.size))

@@ -119,8 +119,11 @@ def test_the_calibration_script_lists_the_policies_the_two_rules_disagree_on(cap
                                                   RESULTS.parents[1] / "experiments/calibrate_cartpole.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
-    script.main([str(RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5"), "--bounds", "0.3:0.5"])
+    script.main([str(RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5"), "--bounds", "0.3:0.5,3.2:1000"])
     out = capsys.readouterr().out
     assert "15 learned policies from 1 files (re-simulated returns differ from the stored ones by at most 0.0e+00)" in out
     assert "| TP | 4 | 15 | 13.90 | 0.00 | no | yes |" in out  # swings up, never balanced, passes the return rule
     assert "| 1 | TP | 1 | 0/1 | 0/1 | 1/1 |" in out
+    # bounds nothing can fail (the wrapped angle is within π): the seed passes there, and is named
+    assert "| 1 | TP | 1 | 0/1 | 1/1 |" in out
+    assert "k = 1, TP, at 3.2 : 1000: the verdict differs from the criterion's on seed(s) 4 (passes)" in out
