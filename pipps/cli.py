@@ -190,6 +190,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "per cell its median and quartiles over the seeds")
     tb.add_argument("--per-seed", action="store_true",
                     help="also print, per cell, every seed's final return and fraction of rollouts balanced (upright)")
+    tb.add_argument("--by", default=None, metavar="SETTING",
+                    help="compare the results by one setting's value (e.g. estimator_choices): each cell's rate per "
+                         "value side by side, with the difference of two values and Fisher's p; results that depart "
+                         "from the preset only in SETTING count without --custom")
 
     pl = sub.add_parser("plot", help="write a rerun recording (.rrd) of results or a study; --png renders it",
                         description="Writes a rerun recording of experiment results (files or folders) or of one study "
@@ -424,37 +428,28 @@ def _result_paths(items):
 
 def _cmd_table(args) -> int:
     from pipps.experiments.results import ResultError, read_summary
-    from pipps.experiments.tables import (TABLES, collect, counts, get_table, judge_counted, render_cell_curves,
-                                         render_curves, render_seeds, render_table)
+    from pipps.experiments.tables import TABLES, comparable_settings, counts, get_table, judge_counted, render_curves
 
     paths = _result_paths(args.results)
     try:
         tables = [get_table(args.table)] if args.table else list(TABLES.values())
     except ValueError as err:
         raise UsageError(str(err)) from None
+    if args.by is not None and args.by not in comparable_settings():
+        raise UsageError(f"--by {args.by}: not a setting of an experiment; choose one of {', '.join(comparable_settings())}")
     summaries, skipped = [], []
     for p in paths:
         try:
             summaries.append(read_summary(p))
         except ResultError as err:
             skipped.append(str(err))
-    counted, unjudged = judge_counted(summaries, args.preset, args.custom)
+    # with --by, a result that departs from the preset only in that setting counts: the groups keep it apart
+    counted_here = [s for s in summaries if not counts(s["config"], args.preset, args.custom, vary=args.by)]
+    counted, unjudged = judge_counted(counted_here, args.preset, custom=True)
     skipped += unjudged.values()  # legacy files whose evaluation does not re-simulate
     summaries = [s for s in summaries if s["path"] not in unjudged]
     resimulated = [s for s in counted if s.get("resimulated")]
-    printed = 0
-    for t in tables:
-        cells = collect(t, counted, preset=args.preset, custom=args.custom)
-        if any(c.n for c in cells) or args.table:
-            print(render_table(t, cells))
-            print()
-            printed += 1
-            if args.per_seed and any(c.n for c in cells):
-                print(render_seeds(t, counted, preset=args.preset, custom=args.custom))
-                print()
-            if args.curves and any(c.n for c in cells):
-                print(render_cell_curves(t, counted, preset=args.preset, custom=args.custom))
-                print()
+    printed = (_print_tables if args.by is None else _print_comparison)(args, tables, counted)
     if args.curves and summaries:
         print("Evaluated return per trial (trial 0 is the random trial):\n")
         print(render_curves(counted))
@@ -463,7 +458,7 @@ def _cmd_table(args) -> int:
           f"{len(summaries) - len(counted)} complete results of other settings and {len(skipped)} incomplete or "
           "corrupt files not counted")
     for s in summaries:
-        why = counts(s["config"], args.preset, args.custom)
+        why = counts(s["config"], args.preset, args.custom, vary=args.by)
         if why:
             print(f"  not counted: {s['path']}: {why}")
     for s in skipped:
@@ -478,6 +473,49 @@ def _cmd_table(args) -> int:
               + (f" for table {args.table}" if args.table else ""), file=sys.stderr)
         return 1
     return 0
+
+
+def _print_tables(args, tables, counted) -> int:
+    """pipps table: each table with results (render_table), with its per-seed rows and cell curves
+    where asked. Returns the number of tables printed."""
+    from pipps.experiments.tables import collect, render_cell_curves, render_seeds, render_table
+
+    printed = 0
+    for t in tables:
+        cells = collect(t, counted, preset=args.preset, custom=args.custom)
+        if any(c.n for c in cells) or args.table:
+            print(render_table(t, cells))
+            print()
+            printed += 1
+            if args.per_seed and any(c.n for c in cells):
+                print(render_seeds(t, counted, preset=args.preset, custom=args.custom))
+                print()
+            if args.curves and any(c.n for c in cells):
+                print(render_cell_curves(t, counted, preset=args.preset, custom=args.custom))
+                print()
+    return printed
+
+
+def _print_comparison(args, tables, counted) -> int:
+    """pipps table --by: each table's cells per value of the setting (render_comparison), then the
+    per-seed rows and curves of each value's results. Returns the number of tables printed."""
+    from pipps.experiments.tables import collect, render_cell_curves, render_comparison, render_seeds, split_by
+
+    groups = split_by(counted, args.by)
+    printed = 0
+    for t in tables:
+        cells = [(value, collect(t, rows, preset=args.preset, custom=True)) for value, rows in groups]
+        if not (any(c.n for _, cs in cells for c in cs) or args.table):
+            continue
+        print(render_comparison(t, args.by, cells))
+        print()
+        printed += 1
+        for value, rows in groups:
+            for wanted, render in ((args.per_seed, render_seeds), (args.curves, render_cell_curves)):
+                text = render(t, rows, preset=args.preset, custom=True) if wanted else ""
+                if text:
+                    print(f"{args.by} = {value}:\n\n{text}\n")
+    return printed
 
 
 def _study_kind(path) -> str | None:

@@ -175,6 +175,43 @@ def test_seed_rows_list_each_counted_seed_in_order_with_both_counts():
 
 
 
+def test_a_comparison_by_a_setting_counts_each_value_apart_with_the_difference():
+    """pipps table --by (issue 20: the library's TP rule next to the thesis'): the groups follow the
+    stored setting, a result departing from the preset only there counts without --custom, and the
+    difference and p are those of the two groups' counts."""
+    from pipps.experiments.tables import counts, difference_interval, fisher_exact, render_comparison, split_by
+
+    cfgs = table_configs("4.1", 10, "thesis", methods=["tp"], ks=[1.0, 9.0])
+    lib = [c.replace(estimator_choices="library") for c in cfgs if c.k == 1.0]
+    summaries = ([{"config": c, "success": c.seed < 9, "return_success": True, "final_return": 9.0, "wall_seconds": 60.0}
+                  for c in lib]
+                 + [{"config": c, "success": c.seed < (5 if c.k == 1.0 else 2), "return_success": c.seed < 8,
+                     "final_return": 9.0, "wall_seconds": 60.0} for c in cfgs])
+    assert counts(lib[0], "thesis") and not counts(lib[0], "thesis", vary="estimator_choices")
+    assert counts(lib[0].replace(centre_std=None), "thesis", vary="estimator_choices")  # another departure still excludes
+    groups = split_by(summaries, "estimator_choices")
+    assert [(v, len(rows)) for v, rows in groups] == [("library", 10), ("thesis", 20)]  # in the order met
+    text = render_comparison(TABLES["4.1"], "estimator_choices",
+                             [(v, collect(TABLES["4.1"], rows, custom=True)) for v, rows in groups])
+    lines = text.splitlines()
+
+    def cells(line):
+        return [c.strip() for c in line.split("|")[1:-1]]
+
+    assert cells(lines[2]) == ["", "method", "thesis", "estimator_choices = library", "estimator_choices = thesis",
+                               "library − thesis [95 %], Fisher p", "by return: library − thesis [95 %], Fisher p"]
+    k1 = cells(next(line for line in lines if line.startswith("| k = 1 |")))
+    lo, hi = difference_interval(9, 10, 5, 10)
+    assert k1[:5] == ["k = 1", "TP", "0.99", "0.90 [0.60, 0.98] (10) · return 1.00", "0.50 [0.24, 0.76] (10) · return 0.80"]
+    assert k1[5] == f"+0.40 [{lo:+.2f}, {hi:+.2f}], p = {fisher_exact(9, 10, 5, 10):.2g}"
+    assert k1[6].startswith("+0.20 [") and k1[6].endswith(f"p = {fisher_exact(10, 10, 8, 10):.2g}")
+    k9 = cells(next(line for line in lines if line.startswith("| k = 9 |")))
+    assert k9[3] == "—" and k9[5:] == ["", ""]  # no library results at k = 9: nothing to difference
+    assert len([line for line in lines if line.startswith("| k =")]) == 2
+    with pytest.raises(ValueError, match="cannot group by 'seed'"):
+        split_by(summaries, "seed")
+
+
 def test_cell_curves_give_each_cells_median_and_quartiles_per_trial():
     """The curves figure's median and band as numbers: percentiles over the counted seeds, per trial."""
     cfgs = table_configs("4.1", 4, "thesis", methods=["tp", "pilco"], ks=[9.0])
@@ -628,6 +665,28 @@ def test_cli_table_reads_results_and_skips_corrupt(tiny_result, tmp_path, capsys
     row = next(line for line in out.splitlines() if line.startswith("| k = 1 |"))
     assert "(1) / 0.99" in row
     assert "1 complete results of the thesis preset counted; 0 complete results of other settings and 1 incomplete or corrupt" in out
+
+
+def test_cli_table_by_a_setting_prints_each_value_and_names_a_bad_setting(tiny_result, tmp_path, capsys):
+    from pipps.cli import main
+
+    _, path = tiny_result
+    folder = tmp_path / "res"
+    folder.mkdir()
+    cfg = resolve_config("thesis", "cartpole_swingup", method="tp", k=1.0, num_learned=1)
+    result = read_result(path)
+    for name, choices in (("lib.h5", "library"), ("thesis.h5", "thesis")):
+        result.config = cfg.replace(estimator_choices=choices)
+        write_result(folder / name, result)
+    # --custom: the tiny result departs from the preset in more than estimator_choices
+    assert main(["table", str(folder), "--table", "4.1", "--by", "estimator_choices", "--per-seed", "--custom"]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("| k = 1 |"))
+    assert row.count("(1)") == 2 and "p = 1" in row  # one seed of each value, side by side
+    assert "estimator_choices = library:" in out and "estimator_choices = thesis:" in out  # each value's seed rows
+    assert "2 complete results of the thesis preset counted" in out
+    assert main(["table", str(folder), "--by", "estimator"]) == 2
+    assert "--by estimator: not a setting" in capsys.readouterr().err
 
 
 def test_plot_writes_a_recording_of_the_curves(tiny_result, tmp_path):

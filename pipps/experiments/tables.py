@@ -295,9 +295,10 @@ def _settings(cfg: ExperimentConfig) -> dict[str, Any]:
     return {k: v for k, v in canonical(cfg).items() if k != "seed"}
 
 
-def counts(cfg: ExperimentConfig, preset: str = "thesis", custom: bool = False) -> str:
+def counts(cfg: ExperimentConfig, preset: str = "thesis", custom: bool = False, vary: str | None = None) -> str:
     """Why a result does not count in the tables of experiment preset ``preset`` ("" when it does):
-    it was run with another preset, or (unless ``custom``) its settings depart from the preset's."""
+    it was run with another preset, or (unless ``custom``) its settings depart from the preset's in
+    a setting other than ``vary`` (the setting a comparison groups by, :func:`split_by`)."""
     from pipps.experiments.config import ConfigError, departures
 
     if cfg.protocol != preset:
@@ -308,6 +309,7 @@ def counts(cfg: ExperimentConfig, preset: str = "thesis", custom: bool = False) 
         diff = departures(cfg)
     except ConfigError as err:
         return f"not expressible by the {preset} preset ({err})"
+    diff.pop(vary, None)
     if diff:
         shown = ", ".join(f"{k}={v!r} (preset: {p!r})" for k, (v, p) in sorted(diff.items()))
         return f"departs from the {preset} preset: {shown} (pipps table --custom counts it)"
@@ -427,6 +429,88 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
     if notes:
         lines += [""] + notes
     return "\n".join(lines)
+
+
+def comparable_settings() -> tuple[str, ...]:
+    """The settings :func:`split_by` may group by: every setting of an experiment's identity
+    (:func:`pipps.experiments.config.canonical`) other than the seed."""
+    cfg = resolve_config("thesis", "cartpole_swingup")
+    return tuple(k for k in canonical(cfg) if k != "seed")
+
+
+def split_by(summaries: list[dict[str, Any]], setting: str) -> list[tuple[Any, list[dict[str, Any]]]]:
+    """The summaries grouped by the value of one setting, as the experiment's identity has it
+    (:func:`canonical`: a setting the method does not use reads as its preset's value), the groups in
+    the order their first summary comes."""
+    if setting not in comparable_settings():
+        raise ValueError(f"cannot group by {setting!r}: choose a setting of the experiment "
+                         f"({', '.join(comparable_settings())})")
+    groups: dict[str, tuple[Any, list[dict[str, Any]]]] = {}
+    for s in summaries:
+        value = canonical(s["config"])[setting]
+        groups.setdefault(repr(value), (value, []))[1].append(s)
+    return list(groups.values())
+
+
+def _rate(r: CellResult | None) -> str:
+    if r is None or not r.n:
+        return "—"
+    lo, hi = r.interval
+    ret = f" · return {r.return_successes / r.n:.2f}" if r.return_successes is not None else ""
+    return f"{r.rate:.2f} [{lo:.2f}, {hi:.2f}] ({r.n}){ret}"
+
+
+def _difference(a: int, an: int, b: int, bn: int) -> str:
+    lo, hi = difference_interval(a, an, b, bn)
+    return f"{a / an - b / bn:+.2f} [{lo:+.2f}, {hi:+.2f}], p = {fisher_exact(a, an, b, bn):.2g}"
+
+
+def render_comparison(table: Table, setting: str, groups: list[tuple[Any, list[CellResult]]]) -> str:
+    """Markdown: the table's cells side by side for each value of ``setting`` (``groups``: value and
+    :func:`collect` of that value's results), one row per cell with results, the thesis value beside.
+    With exactly two values, the first minus the second with its 95 % interval (Newcombe) and
+    Fisher's exact p, by the physical criterion and by the thesis' return threshold. Under the
+    table, each group's seeds on which the two verdicts differ or that a fresh evaluation would
+    flip with probability above 5 %."""
+    by = [{(r.cell.row, r.cell.method): r for r in results} for _, results in groups]
+    names = [f"{setting} = {value}" for value, _ in groups]
+    paired = len(groups) == 2
+    head = ["", "method", "thesis", *names]
+    if paired:
+        a, b = (str(value) for value, _ in groups)
+        head += [f"{a} − {b} [95 %], Fisher p", f"by return: {a} − {b} [95 %], Fisher p"]
+    lines = [f"**{table.title}**, by {setting} — success rate by the physical criterion [95 % Wilson interval] "
+             "(seeds) · the rate by the thesis' return threshold", "", "| " + " | ".join(head) + " |",
+             "|---" * len(head) + "|"]
+    for cell in table.cells:
+        key = (cell.row, cell.method)
+        rs = [g.get(key) for g in by]
+        if not any(r is not None and r.n for r in rs):
+            continue
+        thesis = "–" if cell.thesis is None else f"{cell.thesis:.2f}"
+        row = [cell.row, METHODS[cell.method].label, thesis, *(_rate(r) for r in rs)]
+        if paired:
+            ra, rb = rs
+            both = ra is not None and rb is not None and ra.n and rb.n
+            row.append(_difference(ra.successes, ra.n, rb.successes, rb.n) if both else "")
+            by_return = both and ra.return_successes is not None and rb.return_successes is not None
+            row.append(_difference(ra.return_successes, ra.n, rb.return_successes, rb.n) if by_return else "")
+        lines.append("| " + " | ".join(row) + " |")
+    if len(lines) == 4:
+        return f"**{table.title}**, by {setting}: no complete results for this table."
+    notes = []
+    for name, (_, results) in zip(names, groups):
+        for r in results:
+            where = f"{r.cell.row}, {METHODS[r.cell.method].label}, {name}"
+            if r.mixed:
+                notes.append(f"Warning: {where} pools results whose settings differ in {', '.join(r.mixed)}.")
+            if r.disagree:
+                notes.append(f"{where}: the return threshold and the physical criterion disagree on seed(s) "
+                             f"{', '.join(map(str, r.disagree))} (the physical criterion decides).")
+            if r.unsure:
+                notes.append(f"{where}: a fresh evaluation would flip the verdict with probability > 5 % on seed(s) "
+                             f"{', '.join(map(str, r.unsure))}.")
+    return "\n".join(lines + ([""] + notes if notes else []))
 
 
 def render_curves(summaries: list[dict[str, Any]]) -> str:
