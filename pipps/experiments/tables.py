@@ -414,9 +414,19 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
                 cells.append("")
         if any(c and not c.startswith("—") for c in cells) or show_empty:
             lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    notes = _cell_notes(results)
+    if notes:
+        lines += [""] + notes
+    return "\n".join(lines)
+
+
+def _cell_notes(results: list[CellResult], group: str = "") -> list[str]:
+    """The lines under a table: cells that pool differing settings, seeds whose two verdicts differ,
+    and seeds a fresh evaluation would flip with probability above 5 %; ``group`` names the
+    comparison group the cells belong to."""
     notes = []
     for r in results:
-        name = f"{r.cell.row}, {METHODS[r.cell.method].label}"
+        name = f"{r.cell.row}, {METHODS[r.cell.method].label}" + (f", {group}" if group else "")
         if r.mixed:
             notes.append(f"Warning: {name} pools results whose settings differ in {', '.join(r.mixed)}; read them "
                          "from separate folders.")
@@ -426,9 +436,7 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
         if r.unsure:
             notes.append(f"{name}: a fresh evaluation would flip the verdict with probability > 5 % on seed(s) "
                          f"{', '.join(map(str, r.unsure))}.")
-    if notes:
-        lines += [""] + notes
-    return "\n".join(lines)
+    return notes
 
 
 def comparable_settings() -> tuple[str, ...]:
@@ -498,18 +506,7 @@ def render_comparison(table: Table, setting: str, groups: list[tuple[Any, list[C
         lines.append("| " + " | ".join(row) + " |")
     if len(lines) == 4:
         return f"**{table.title}**, by {setting}: no complete results for this table."
-    notes = []
-    for name, (_, results) in zip(names, groups):
-        for r in results:
-            where = f"{r.cell.row}, {METHODS[r.cell.method].label}, {name}"
-            if r.mixed:
-                notes.append(f"Warning: {where} pools results whose settings differ in {', '.join(r.mixed)}.")
-            if r.disagree:
-                notes.append(f"{where}: the return threshold and the physical criterion disagree on seed(s) "
-                             f"{', '.join(map(str, r.disagree))} (the physical criterion decides).")
-            if r.unsure:
-                notes.append(f"{where}: a fresh evaluation would flip the verdict with probability > 5 % on seed(s) "
-                             f"{', '.join(map(str, r.unsure))}.")
+    notes = [note for name, (_, results) in zip(names, groups) for note in _cell_notes(results, name)]
     return "\n".join(lines + ([""] + notes if notes else []))
 
 
