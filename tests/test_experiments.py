@@ -180,13 +180,14 @@ def test_a_comparison_by_a_setting_counts_each_value_apart_with_the_difference()
     stored setting, a result departing from the preset only there counts without --custom, and the
     difference and p are those of the two groups' counts."""
     from pipps.experiments.tables import counts, difference_interval, fisher_exact, render_comparison, split_by
+    from scipy.stats import mannwhitneyu
 
     cfgs = table_configs("4.1", 10, "thesis", methods=["tp"], ks=[1.0, 9.0])
     lib = [c.replace(estimator_choices="library") for c in cfgs if c.k == 1.0]
-    summaries = ([{"config": c, "success": c.seed < 9, "return_success": True, "final_return": 9.0, "wall_seconds": 60.0}
-                  for c in lib]
+    summaries = ([{"config": c, "success": c.seed < 9, "return_success": True, "final_return": 8.0 + c.seed / 10,
+                   "final_balanced": 1.0, "wall_seconds": 60.0} for c in lib]
                  + [{"config": c, "success": c.seed < (5 if c.k == 1.0 else 2), "return_success": c.seed < 8,
-                     "final_return": 9.0, "wall_seconds": 60.0} for c in cfgs])
+                     "final_return": 9.0 + c.seed, "final_balanced": 0.9, "wall_seconds": 60.0} for c in cfgs])
     assert counts(lib[0], "thesis") and not counts(lib[0], "thesis", vary="estimator_choices")
     assert counts(lib[0].replace(centre_std=None), "thesis", vary="estimator_choices")  # another departure still excludes
     groups = split_by(summaries, "estimator_choices")
@@ -199,14 +200,21 @@ def test_a_comparison_by_a_setting_counts_each_value_apart_with_the_difference()
         return [c.strip() for c in line.split("|")[1:-1]]
 
     assert cells(lines[2]) == ["", "method", "thesis", "estimator_choices = library", "estimator_choices = thesis",
-                               "library − thesis [95 %], Fisher p", "by return: library − thesis [95 %], Fisher p"]
+                               "library − thesis [95 %], Fisher p", "by return: library − thesis [95 %], Fisher p",
+                               "final return, median: library vs thesis, Mann–Whitney p",
+                               "balanced, median: library vs thesis, Mann–Whitney p"]
     k1 = cells(next(line for line in lines if line.startswith("| k = 1 |")))
     lo, hi = difference_interval(9, 10, 5, 10)
     assert k1[:5] == ["k = 1", "TP", "0.99", "0.90 [0.60, 0.98] (10) · return 1.00", "0.50 [0.24, 0.76] (10) · return 0.80"]
     assert k1[5] == f"+0.40 [{lo:+.2f}, {hi:+.2f}], p = {fisher_exact(9, 10, 5, 10):.2g}"
     assert k1[6].startswith("+0.20 [") and k1[6].endswith(f"p = {fisher_exact(10, 10, 8, 10):.2g}")
+    # every library return (8.0–8.9) lies below every thesis one (9–18): the exact Mann–Whitney p of
+    # complete separation at 10 and 10 is 2 / C(20, 10); the balanced fractions are constant per group
+    assert k1[7] == f"8.45 vs 13.50, p = {2 / math.comb(20, 10):.2g}"
+    tied = mannwhitneyu([1.0] * 10, [0.9] * 10, method="asymptotic").pvalue  # ties: the normal approximation
+    assert k1[8] == f"1.00 vs 0.90, p = {tied:.2g}"
     k9 = cells(next(line for line in lines if line.startswith("| k = 9 |")))
-    assert k9[3] == "—" and k9[5:] == ["", ""]  # no library results at k = 9: nothing to difference
+    assert k9[3] == "—" and k9[5:] == ["", "", "", ""]  # no library results at k = 9: nothing to difference
     assert len([line for line in lines if line.startswith("| k =")]) == 2
     with pytest.raises(ValueError, match="cannot group by 'seed'"):
         split_by(summaries, "seed")

@@ -271,6 +271,8 @@ class CellResult:
     return_successes: int | None = None  # by the thesis' return threshold (None: not applicable)
     disagree: tuple[int, ...] = ()  # seeds whose two verdicts differ
     unsure: tuple[int, ...] = ()  # seeds whose verdict a fresh evaluation flips with probability > 5 %
+    final_returns: tuple[float, ...] = ()  # each counted seed's final evaluated return, in seed order
+    final_balanced: tuple[float, ...] = ()  # each seed's fraction of final rollouts meeting the criterion (judged only)
 
     @property
     def rate(self) -> float:
@@ -364,7 +366,9 @@ def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = 
             float(sum(s["wall_seconds"] for s in rows) / n) if n else math.nan, mixed,
             sum(bool(s["return_success"]) for s in judged) if judged else None,
             tuple(sorted(s["config"].seed for s in judged if s["return_success"] != s["success"])),
-            tuple(sorted(s["config"].seed for s in rows if s.get("flip", 0.0) > 0.05))))
+            tuple(sorted(s["config"].seed for s in rows if s.get("flip", 0.0) > 0.05)),
+            tuple(float(s["final_return"]) for s in rows),
+            tuple(float(s["final_balanced"]) for s in rows if s.get("final_balanced") is not None)))
     return out
 
 
@@ -473,20 +477,36 @@ def _difference(a: int, an: int, b: int, bn: int) -> str:
     return f"{a / an - b / bn:+.2f} [{lo:+.2f}, {hi:+.2f}], p = {fisher_exact(a, an, b, bn):.2g}"
 
 
+def _shift(a: tuple[float, ...], b: tuple[float, ...]) -> str:
+    """Medians of two samples and the two-sided Mann–Whitney p that neither tends to exceed the other:
+    exact where no value is tied, else the normal approximation with the tie correction (the exact
+    null distribution assumes no ties)."""
+    from scipy.stats import mannwhitneyu
+
+    if not a or not b:
+        return ""
+    tied = len(set(a) | set(b)) < len(a) + len(b)
+    p = mannwhitneyu(a, b, alternative="two-sided", method="asymptotic" if tied else "exact").pvalue
+    return f"{np.median(a):.2f} vs {np.median(b):.2f}, p = {p:.2g}"
+
+
 def render_comparison(table: Table, setting: str, groups: list[tuple[Any, list[CellResult]]]) -> str:
     """Markdown: the table's cells side by side for each value of ``setting`` (``groups``: value and
     :func:`collect` of that value's results), one row per cell with results, the thesis value beside.
     With exactly two values, the first minus the second with its 95 % interval (Newcombe) and
-    Fisher's exact p, by the physical criterion and by the thesis' return threshold. Under the
-    table, each group's seeds on which the two verdicts differ or that a fresh evaluation would
-    flip with probability above 5 %."""
+    Fisher's exact p, by the physical criterion and by the thesis' return threshold; and, with more
+    power than a rate at ten seeds, the two medians of the seeds' final returns and of their
+    fractions of rollouts balanced, each with the Mann–Whitney p. Under the table, each group's
+    seeds on which the two verdicts differ or that a fresh evaluation would flip with probability
+    above 5 %."""
     by = [{(r.cell.row, r.cell.method): r for r in results} for _, results in groups]
     names = [f"{setting} = {value}" for value, _ in groups]
     paired = len(groups) == 2
     head = ["", "method", "thesis", *names]
     if paired:
         a, b = (str(value) for value, _ in groups)
-        head += [f"{a} − {b} [95 %], Fisher p", f"by return: {a} − {b} [95 %], Fisher p"]
+        head += [f"{a} − {b} [95 %], Fisher p", f"by return: {a} − {b} [95 %], Fisher p",
+                 f"final return, median: {a} vs {b}, Mann–Whitney p", f"balanced, median: {a} vs {b}, Mann–Whitney p"]
     lines = [f"**{table.title}**, by {setting} — success rate by the physical criterion [95 % Wilson interval] "
              "(seeds) · the rate by the thesis' return threshold", "", "| " + " | ".join(head) + " |",
              "|---" * len(head) + "|"]
@@ -503,6 +523,8 @@ def render_comparison(table: Table, setting: str, groups: list[tuple[Any, list[C
             row.append(_difference(ra.successes, ra.n, rb.successes, rb.n) if both else "")
             by_return = both and ra.return_successes is not None and rb.return_successes is not None
             row.append(_difference(ra.return_successes, ra.n, rb.return_successes, rb.n) if by_return else "")
+            row.append(_shift(ra.final_returns, rb.final_returns) if both else "")
+            row.append(_shift(ra.final_balanced, rb.final_balanced) if both else "")
         lines.append("| " + " | ".join(row) + " |")
     if len(lines) == 4:
         return f"**{table.title}**, by {setting}: no complete results for this table."
