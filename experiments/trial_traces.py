@@ -1,7 +1,8 @@
 """Per learned trial of particle-method result files: the true return against the model's objective at
-the last policy step, the median gradient norm, non-finite and skipped steps, and where the recorded
-rollout left the pole and the cart (docs/results.md, the flat-cost plateaus of k = 16 TP seed 2 and
-k = 9 TP seed 17).
+the last policy step, the median gradient norm, TP's k_LR averaged over time steps and policy steps
+(NaN for a method without it), non-finite and skipped steps, and where the recorded rollout left the
+pole and the cart (docs/results.md, the flat-cost plateaus of k = 16 TP seed 2 and k = 9 TP seed 17;
+docs/estimator-variance.md, the library's and the thesis' k_LR rules while learning).
 
     python experiments/trial_traces.py results/thesis/cartpole_swingup_angle_k16_tp_thesis_s2.h5
 
@@ -15,6 +16,11 @@ import numpy as np
 from pipps.experiments.results import read_result
 
 
+def _mean(values) -> float:
+    values = np.asarray(values, dtype=float)
+    return float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
+
+
 def main(paths) -> None:
     for path in paths:
         print(path)
@@ -23,7 +29,7 @@ def main(paths) -> None:
                 continue
             trace, states = t.opt_trace, np.asarray(t.states)
             print(f"  trial {t.index:03d}: return {t.eval_return:.2f}  model {float(trace.particle_objective[-1]):.2f}  "
-                  f"median |grad| {np.median(trace.grad_norm):.2g}  non-finite {int(np.sum(t.diagnostics.nonfinite_steps))}  "
+                  f"median |grad| {np.median(trace.grad_norm):.2g}  mean k_LR {_mean(t.diagnostics.k_lr):.3f}  non-finite {int(np.sum(t.diagnostics.nonfinite_steps))}  "
                   f"skipped {int(np.sum(trace.skipped))}  max |θ| {np.abs(states[:, 3]).max():.2f}  "
                   f"cart end {states[-1, 0]:.1f} m")
 
