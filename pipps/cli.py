@@ -499,7 +499,8 @@ def _print_tables(args, tables, counted) -> int:
 def _print_comparison(args, tables, counted) -> int:
     """pipps table --by: each table's cells per value of the setting (render_comparison), then the
     per-seed rows and curves of each value's results. Returns the number of tables printed."""
-    from pipps.experiments.tables import collect, render_cell_curves, render_comparison, render_seeds, split_by
+    from pipps.experiments.tables import (collect, render_cell_curves, render_comparison, render_paired, render_seeds,
+                                         split_by)
 
     groups = split_by(counted, args.by)
     printed = 0
@@ -509,6 +510,10 @@ def _print_comparison(args, tables, counted) -> int:
             continue
         print(render_comparison(t, args.by, cells))
         print()
+        paired = render_paired(t, args.by, cells)
+        if paired:
+            print(paired)
+            print()
         printed += 1
         for value, rows in groups:
             for wanted, render in ((args.per_seed, render_seeds), (args.curves, render_cell_curves)):

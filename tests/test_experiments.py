@@ -15,7 +15,6 @@ import shutil
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import h5py
 import jax
@@ -179,8 +178,10 @@ def test_a_comparison_by_a_setting_counts_each_value_apart_with_the_difference()
     """pipps table --by (issue 20: the library's TP rule next to the thesis'): the groups follow the
     stored setting, a result departing from the preset only there counts without --custom, and the
     difference and p are those of the two groups' counts."""
-    from pipps.experiments.tables import counts, difference_interval, fisher_exact, render_comparison, split_by
-    from scipy.stats import mannwhitneyu
+    from scipy.stats import binomtest, mannwhitneyu, wilcoxon
+
+    from pipps.experiments.tables import (counts, difference_interval, fisher_exact, render_comparison, render_paired,
+                                         split_by)
 
     cfgs = table_configs("4.1", 10, "thesis", methods=["tp"], ks=[1.0, 9.0])
     lib = [c.replace(estimator_choices="library") for c in cfgs if c.k == 1.0]
@@ -216,6 +217,15 @@ def test_a_comparison_by_a_setting_counts_each_value_apart_with_the_difference()
     k9 = cells(next(line for line in lines if line.startswith("| k = 9 |")))
     assert k9[3] == "—" and k9[5:] == ["", "", "", ""]  # no library results at k = 9: nothing to difference
     assert len([line for line in lines if line.startswith("| k =")]) == 2
+    # paired by seed: k = 1 only (no library seeds at k = 9); both succeed on 0–4, only library on 5–8, neither on 9
+    paired = render_paired(TABLES["4.1"], "estimator_choices",
+                           [(v, collect(TABLES["4.1"], rows, custom=True)) for v, rows in groups]).splitlines()
+    assert [cells(line) for line in paired if line.startswith("| k =")] == [[
+        "k = 1", "TP", "0–9", "5 / 4 / 0 / 1", f"{binomtest(4, 4).pvalue:.2g}",  # McNemar: 4 of 4 discordant one way
+        f"-5.05, p = {2 / 2 ** 10:.2g}",  # every difference −1 − 0.9·seed < 0: the exact signed-rank p is 2 / 2^10
+        f"+0.10, p = {wilcoxon(np.full(10, 0.1)).pvalue:.2g}"]]
+    assert render_paired(TABLES["4.1"], "estimator_choices", [(v, collect(TABLES["4.1"], rows, custom=True))
+                                                              for v, rows in groups[:1]]) == ""
     with pytest.raises(ValueError, match="cannot group by 'seed'"):
         split_by(summaries, "seed")
 

@@ -273,6 +273,7 @@ class CellResult:
     unsure: tuple[int, ...] = ()  # seeds whose verdict a fresh evaluation flips with probability > 5 %
     final_returns: tuple[float, ...] = ()  # each counted seed's final evaluated return, in seed order
     final_balanced: tuple[float, ...] = ()  # each seed's fraction of final rollouts meeting the criterion (judged only)
+    verdicts: tuple[bool, ...] = ()  # each counted seed's physical verdict, in seed order
 
     @property
     def rate(self) -> float:
@@ -368,7 +369,8 @@ def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = 
             tuple(sorted(s["config"].seed for s in judged if s["return_success"] != s["success"])),
             tuple(sorted(s["config"].seed for s in rows if s.get("flip", 0.0) > 0.05)),
             tuple(float(s["final_return"]) for s in rows),
-            tuple(float(s["final_balanced"]) for s in rows if s.get("final_balanced") is not None)))
+            tuple(float(s["final_balanced"]) for s in rows if s.get("final_balanced") is not None),
+            tuple(bool(s["success"]) for s in rows)))
     return out
 
 
@@ -422,6 +424,53 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
     if notes:
         lines += [""] + notes
     return "\n".join(lines)
+
+
+def _signed_rank(d: np.ndarray) -> str:
+    """The median of paired differences and the two-sided Wilcoxon signed-rank p (scipy's default
+    method: exact for up to 50 pairs without ties or zeros; zero differences dropped)."""
+    from scipy.stats import wilcoxon
+
+    p = wilcoxon(d).pvalue if np.any(d != 0) else 1.0
+    return f"{np.median(d):+.2f}, p = {p:.2g}"
+
+
+def render_paired(table: Table, setting: str, groups: list[tuple[Any, list[CellResult]]]) -> str:
+    """Markdown: for two values of ``setting``, each cell's seeds that both values ran, paired. A
+    seed fixes the random trial, the initial policy and every key, so the two runs of a seed share
+    their start and part only where the setting acts (common random numbers): the verdicts as a 2×2
+    count with McNemar's exact p (a binomial test on the discordant seeds), and the median of the
+    per-seed differences of final return and of balanced fraction with the Wilcoxon signed-rank p.
+    "" unless there are two values and a cell whose seeds overlap."""
+    from scipy.stats import binomtest
+
+    if len(groups) != 2:
+        return ""
+    (a, ra_all), (b, rb_all) = groups
+    rb_by = {(r.cell.row, r.cell.method): r for r in rb_all}
+    lines = []
+    for ra in ra_all:
+        rb = rb_by.get((ra.cell.row, ra.cell.method))
+        common = sorted(set(ra.seeds) & set(rb.seeds)) if rb is not None else []
+        if not common:
+            continue
+        ia, ib = ([r.seeds.index(s) for s in common] for r in (ra, rb))
+        va, vb = np.array(ra.verdicts)[ia], np.array(rb.verdicts)[ib]
+        only_a, only_b = int(np.sum(va & ~vb)), int(np.sum(vb & ~va))
+        mcnemar = binomtest(only_a, only_a + only_b, 0.5).pvalue if only_a + only_b else 1.0
+        ret = _signed_rank(np.array(ra.final_returns)[ia] - np.array(rb.final_returns)[ib])
+        judged = len(ra.final_balanced) == len(ra.seeds) and len(rb.final_balanced) == len(rb.seeds)
+        bal = _signed_rank(np.array(ra.final_balanced)[ia] - np.array(rb.final_balanced)[ib]) if judged else ""
+        lines.append(f"| {ra.cell.row} | {METHODS[ra.cell.method].label} | {_seed_ranges(common)} | "
+                     f"{int(np.sum(va & vb))} / {only_a} / {only_b} / {int(np.sum(~va & ~vb))} | {mcnemar:.2g} | "
+                     f"{ret} | {bal} |")
+    if not lines:
+        return ""
+    return "\n".join([f"**{table.title}**, {setting} = {a} against {b}, paired by seed (the seeds both ran: "
+                      "same random trial, initial policy and keys)", "",
+                      f"| | method | seeds | success: both / only {a} / only {b} / neither | McNemar exact p | "
+                      f"final return {a} − {b}: median, Wilcoxon p | balanced {a} − {b}: median, Wilcoxon p |",
+                      "|---|---|---|---|---|---|---|", *lines])
 
 
 def _cell_notes(results: list[CellResult], group: str = "") -> list[str]:
