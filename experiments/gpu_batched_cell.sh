@@ -32,12 +32,14 @@ for sa, sb in [((8192, 8192), (8192, 8192)), ((400, 300, 300), (400, 300, 300)),
     tf, dt = rate(sa, sb)
     print(f"float64 GEMM {sa} @ {sb}: {tf:.2f} Tflop/s ({dt*1e3:.3f} ms)")
 PY
+if [ "${SMOKE:-1}" = 1 ]; then
 echo "== smoke: quick preset, 2 seeds, 1 learned trial, vmapped ($(( $(date +%s) - t0 )) s)"
 timeout 150 python3 -m pipps.cli sweep --table 4.1 --k 1 --methods tp --seeds 2 --preset quick \
     --set num_learned=1 --batched --batching vmap --out /tmp/gpu_smoke > "$OUT/smoke.log" 2>&1
 rc=$?; tail -n 15 "$OUT/smoke.log"; echo "smoke rc=$rc"
 [ $rc -eq 0 ] || exit $rc
 python3 experiments/trial_timings.py /tmp/gpu_smoke/*.h5
+fi
 left=$(( ${CELL_SECONDS:-400} ))
 echo "== cell: $* (limit $left s, started at $(( $(date +%s) - t0 )) s)"
 timeout "$left" python3 -m pipps.cli sweep "$@" --batched --batching vmap --out "$CELL" > "$OUT/cell.log" 2>&1
