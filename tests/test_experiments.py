@@ -276,6 +276,25 @@ def tiny_result(tmp_path_factory):
     return result, path
 
 
+def test_code_version_keeps_a_declared_commit_apart_from_what_git_found(monkeypatch):
+    """A copied tree (a lent GPU) declares its commit; the file must say it was declared, not checked."""
+    from pipps.experiments import results as res
+
+    monkeypatch.delenv("PIPPS_CODE_VERSION", raising=False)
+    res.code_version.cache_clear()
+    found = res.code_version()
+    assert found == res._git_version() and "declared" not in found
+    monkeypatch.setenv("PIPPS_CODE_VERSION", "abc123")
+    res.code_version.cache_clear()
+    declared = res.code_version()
+    assert declared.startswith("abc123 (declared")
+    assert declared == ("abc123 (declared)" if found == "unknown" else f"abc123 (declared; git there: {found})")
+    monkeypatch.setattr(res, "_git_version", lambda: "unknown")
+    res.code_version.cache_clear()
+    assert res.code_version() == "abc123 (declared)"
+    res.code_version.cache_clear()
+
+
 def test_result_file_schema_and_round_trip(tiny_result):
     result, path = tiny_result
     assert check_result(path) == "complete"

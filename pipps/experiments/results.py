@@ -76,28 +76,35 @@ def code_version() -> str:
     """The git commit of the pipps source that is running, ``+dirty`` when ``pipps/`` differs from
     it, or ``unknown`` outside a git checkout (an installed wheel): stored in every result file.
 
-    A copied source tree without its ``.git`` (a lent GPU machine gets the working tree only) can
-    declare its commit in ``PIPPS_CODE_VERSION``; it is stored as ``COMMIT (declared)``, so a
-    reader sees that git did not check it."""
+    A copied source tree can declare its commit in ``PIPPS_CODE_VERSION``: a lent GPU machine gets
+    the working tree without this repository's ``.git`` (or with one at an older commit, so git
+    there reports that commit ``+dirty``). A declared commit is stored as ``COMMIT (declared)``,
+    with what git reports there appended, so a reader sees that git did not check it."""
     import os
-    import subprocess
 
+    found = _git_version()
     declared = os.environ.get("PIPPS_CODE_VERSION", "").strip()
-    fallback = f"{declared} (declared)" if declared else "unknown"
+    if not declared:
+        return found
+    return f"{declared} (declared)" if found == "unknown" else f"{declared} (declared; git there: {found})"
+
+
+def _git_version() -> str:
+    import subprocess
 
     root = Path(__file__).resolve().parents[2]
     try:
         top = subprocess.run(["git", "-C", str(root), "rev-parse", "--show-toplevel"], capture_output=True,
                              text=True, timeout=10)
         if top.returncode != 0 or Path(top.stdout.strip()).resolve() != root:
-            return fallback  # not the checkout pipps runs from (e.g. a wheel inside some other repository)
+            return "unknown"  # not the checkout pipps runs from (e.g. a wheel inside some other repository)
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                               timeout=10)
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--", "pipps"],
                                capture_output=True, text=True, timeout=10)
         return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
-        return fallback
+        return "unknown"
 
 
 def _checksum(config_json: str, trials) -> str:
