@@ -573,6 +573,8 @@ def ray_session():
     ray.shutdown()
 
 
+@pytest.mark.slow  # ~4 min of CI (two fresh Ray workers import JAX and compile); the default run keeps Ray
+# through the failure and CPU-pinning tests below
 def test_ray_sweep_equals_local_sweep_resumes_and_reruns_skip(local_pair, tmp_path):
     """Two experiments on Ray (one missing, one half-written) equal the local backend's; a complete
     file is skipped untouched; run_sweep shuts down the local Ray instance it started."""
