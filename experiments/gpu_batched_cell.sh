@@ -7,6 +7,8 @@
 #     bash experiments/gpu_batched_cell.sh --table 4.1 --k 9 --methods tp --seeds 10 --seed-start 10 \
 #     --set estimator_choices=library
 #
+# The lent machine gets the working tree, at most 64 MiB: results/ (~115 MB) is over that, so move it
+# out of the checkout for the call and back afterwards (git sees it deleted meanwhile; commit nothing then).
 # Runs from a copied source tree (no install: PYTHONPATH), the device's own jax. Files are written
 # after every finished trial, so a cell cut off by CELL_SECONDS resumes from them elsewhere.
 set -u
