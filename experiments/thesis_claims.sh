@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# The thesis' other claims (docs/results.md, "The thesis' claims"): Table 4.1's k = 1 row (RP
+# against TP in chaos), the Tip Cost at k = 1 (Tables 4.2-4.3, Gaussian shaping), Table 4.3's
+# Angle Cost GTP and GLR, Table 4.4 (unicycle) and DEL on the balancing task; thesis preset.
+#
+#   experiments/thesis_claims.sh [OUT] [WORKERS]     # default results/thesis, 2 workers
+#   CORE=1 experiments/thesis_claims.sh OUT            # one worker pinned to core 1 (join a running queue)
+#
+# One ordered queue of sweeps, walked by WORKERS processes each pinned to its own core: two sweeps
+# share a folder through the result files' locks, so a worker skips the experiment another runs
+# and takes the next. Resumable: complete files are skipped, an unfinished file continues after
+# its last finished trial (copy results/in-progress/* into OUT first).
+#
+# Order: what only a CPU runs comes first (PILCO and the fixed-seed quasi-Newton methods cannot be
+# batched), breadth first (seeds 0-4 of a group's cells before seeds 5-9); the batchable cells
+# follow for a machine without a GPU. On a lent GPU, run those with experiments/gpu_concurrent_cells.sh:
+# what it ran, with which command, is in results/README.md.
+set -uo pipefail
+out=${1:-results/thesis}
+workers=${2:-2}
+queue=(
+  # group 1: Table 4.1, Angle Cost, k = 1 (RP, LR, GR ran on a GPU; TP has 10 seeds)
+  "--table 4.1 --k 1 --methods rp_fs,gr_fs --seeds 5"
+  "--table 4.1 --k 1 --methods pilco --seeds 10"
+  # group 2: Tip Cost, k = 1 (Tables 4.2 and 4.3 share these runs)
+  "--table 4.2 --k 1 --methods pilco --seeds 5"
+  "--table 4.1 --k 1 --methods rp_fs,gr_fs --seeds 10"
+  "--table 4.2 --k 1 --methods pilco --seeds 10"
+  # group 4: unicycle
+  "--table 4.4 --methods pilco --seeds 5"
+  # the batchable cells, for a machine without a GPU, in the same order
+  "--table 4.1 --k 1 --methods tp-sf --seeds 5"
+  "--table 4.2 --k 1 --methods tp,gr --seeds 5"
+  "--table 4.3 --k 1 --methods gtp,glr --seeds 5"
+  "--table 4.1 --k 1 --methods tp-sf --seeds 10"
+  "--table 4.2 --k 1 --methods tp,gr --seeds 10"
+  "--table 4.3 --k 1 --methods gtp,glr --seeds 10"
+  "--table 4.4 --methods rp,lr,tp --seeds 5"
+  "--table del --seeds 5"
+)
+worker() {
+  local core=$1
+  for q in "${queue[@]}"; do
+    # shellcheck disable=SC2086
+    taskset -c "$core" pipps sweep $q --jobs 1 --out "$out"
+  done
+}
+if [ -n "${CORE:-}" ]; then worker "$CORE"; exit; fi
+for ((w = 0; w < workers; w++)); do worker "$w" & done
+wait
+pipps table "$out"
