@@ -134,17 +134,35 @@ def test_tables_hold_the_thesis_values_and_expand_to_configs():
         table_configs("4.1", 1, methods=["nope"])
 
 
+def _per_seed(seed, passes, balanced=None, rollouts=10):
+    """Per-seed readings of a final trial with ``passes`` of ``rollouts`` below the threshold and
+    ``balanced`` of them balanced (default: the same ones)."""
+    from pipps.reporting.readings import seed_values
+
+    balanced = passes if balanced is None else balanced
+    i = np.arange(rollouts)
+    return seed_values(seed, np.where(i < passes, 10.0, 20.0), i < balanced, 10.0, 15.0, 0.5)
+
+
 def test_table_counts_cells_and_flags_disagreement():
+    from pipps.reporting.readings import clustered_interval
+
     cfgs = table_configs("4.1", 10, "thesis", methods=["tp"], ks=[1.0, 16.0])
+    # k = 1: half the seeds pass every rollout, half none (0.50); k = 16: every seed 4 of 10 (0.40)
     summaries = [{"config": c, "success": c.seed < (9 if c.k == 1.0 else 1), "final_return": 10.0 + c.seed,
-                  "wall_seconds": 60.0} for c in cfgs]
+                  "wall_seconds": 60.0, "per_seed": _per_seed(c.seed, (10 if c.seed < 5 else 0) if c.k == 1.0 else 4)}
+                 for c in cfgs]
     cells = {(r.cell.row, r.cell.method): r for r in collect(TABLES["4.1"], summaries)}
     k1, k16 = cells[("k = 1", "tp")], cells[("k = 16", "tp")]
-    assert (k1.successes, k1.n, k16.successes, k16.n) == (9, 10, 1, 10)
-    assert k1.agrees is False  # 9/10 gives [0.596, 0.982]: the thesis' 0.99 lies above it
-    assert k16.agrees is True  # 1/10 gives [0.018, 0.404]: 0.40 inside
+    assert (k1.successes, k1.n, k16.successes, k16.n) == (9, 10, 1, 10)  # the per-seed physical verdicts
+    assert (k1.rate, k16.rate) == (0.5, 0.4)  # the headline: per trial, return
+    lo1, hi1 = clustered_interval([10] * 5 + [0] * 5, [10] * 10)
+    lo16, hi16 = clustered_interval([4] * 10, [10] * 10)
+    assert k1.interval == (lo1, hi1) and hi1 < 0.99 and lo16 < 0.40 < hi16
+    assert k1.agrees is False and k16.agrees is True
     text = render_table(TABLES["4.1"], list(cells.values()))
-    assert "0.90 [0.60, 0.98] (10) / 0.99 !" in text and "0.10 [0.02, 0.40] (10) / 0.40 |" in text
+    assert f"0.50 [{lo1:.2f}, {hi1:.2f}] (10) / 0.99 !" in text and f"0.40 [{lo16:.2f}, {hi16:.2f}] (10) / 0.40 |" in text
+    assert "| k = 16 | TP | 10 | 0.40 | 0.40 [" in text  # the every-reading table
     assert cells[("k = 4", "tp")].n == 0
     assert k1.mixed == () and "Warning" not in text
     summaries[1] = dict(summaries[1], config=summaries[1]["config"].replace(cost=None))  # None ≡ the preset's angle
@@ -182,13 +200,15 @@ def test_a_comparison_by_a_setting_counts_each_value_apart_with_the_difference()
 
     from pipps.experiments.tables import (counts, difference_interval, fisher_exact, render_comparison, render_paired,
                                          split_by)
+    from pipps.reporting.readings import clustered_interval, newcombe_interval
 
     cfgs = table_configs("4.1", 10, "thesis", methods=["tp"], ks=[1.0, 9.0])
     lib = [c.replace(estimator_choices="library") for c in cfgs if c.k == 1.0]
     summaries = ([{"config": c, "success": c.seed < 9, "return_success": True, "final_return": 8.0 + c.seed / 10,
-                   "final_balanced": 1.0, "wall_seconds": 60.0} for c in lib]
+                   "final_balanced": 1.0, "wall_seconds": 60.0, "per_seed": _per_seed(c.seed, 10)} for c in lib]
                  + [{"config": c, "success": c.seed < (5 if c.k == 1.0 else 2), "return_success": c.seed < 8,
-                     "final_return": 9.0 + c.seed, "final_balanced": 0.9, "wall_seconds": 60.0} for c in cfgs])
+                     "final_return": 9.0 + c.seed, "final_balanced": 0.9, "wall_seconds": 60.0,
+                     "per_seed": _per_seed(c.seed, 6 + c.seed % 3)} for c in cfgs])
     assert counts(lib[0], "thesis") and not counts(lib[0], "thesis", vary="estimator_choices")
     assert counts(lib[0].replace(centre_std=None), "thesis", vary="estimator_choices")  # another departure still excludes
     groups = split_by(summaries, "estimator_choices")
@@ -201,21 +221,31 @@ def test_a_comparison_by_a_setting_counts_each_value_apart_with_the_difference()
         return [c.strip() for c in line.split("|")[1:-1]]
 
     assert cells(lines[2]) == ["", "method", "thesis", "estimator_choices = library", "estimator_choices = thesis",
-                               "library − thesis [95 %], Fisher p", "by return: library − thesis [95 %], Fisher p",
+                               "headline: library − thesis [95 %], permutation p",
+                               "per seed, physical: library − thesis [95 %], Fisher p",
+                               "per seed, return: library − thesis [95 %], Fisher p",
                                "final return, median: library vs thesis, Mann–Whitney p",
                                "balanced, median: library vs thesis, Mann–Whitney p"]
     k1 = cells(next(line for line in lines if line.startswith("| k = 1 |")))
     lo, hi = difference_interval(9, 10, 5, 10)
-    assert k1[:5] == ["k = 1", "TP", "0.99", "0.90 [0.60, 0.98] (10) · return 1.00", "0.50 [0.24, 0.76] (10) · return 0.80"]
-    assert k1[5] == f"+0.40 [{lo:+.2f}, {hi:+.2f}], p = {fisher_exact(9, 10, 5, 10):.2g}"
-    assert k1[6].startswith("+0.20 [") and k1[6].endswith(f"p = {fisher_exact(10, 10, 8, 10):.2g}")
+    thesis_passes = [6 + s % 3 for s in range(10)]  # 6, 7, 8, ...: 69 of 100 rollouts
+    lo_t, hi_t = clustered_interval(thesis_passes, [10] * 10)
+    lo_l, hi_l = clustered_interval([10] * 10, [10] * 10)
+    assert k1[:5] == ["k = 1", "TP", "0.99", f"1.00 [{lo_l:.2f}, {hi_l:.2f}] (10) · physical 9/10",
+                      f"0.69 [{lo_t:.2f}, {hi_t:.2f}] (10) · physical 5/10"]
+    # every library seed (1.0) lies above every thesis seed (0.6–0.8): the permutation p of complete
+    # separation, 2 / C(20, 10) = 1.1e-5, prints as below 1e-4; the interval is Newcombe's from the two seed-level ones
+    d_lo, d_hi = newcombe_interval(1.0, (lo_l, hi_l), 0.69, (lo_t, hi_t))
+    assert k1[5] == f"+0.31 [{d_lo:+.2f}, {d_hi:+.2f}], p < 1e-4"
+    assert k1[6] == f"+0.40 [{lo:+.2f}, {hi:+.2f}], p = {fisher_exact(9, 10, 5, 10):.2g}"
+    assert k1[7].startswith("+0.20 [") and k1[7].endswith(f"p = {fisher_exact(10, 10, 8, 10):.2g}")
     # every library return (8.0–8.9) lies below every thesis one (9–18): the exact Mann–Whitney p of
     # complete separation at 10 and 10 is 2 / C(20, 10); the balanced fractions are constant per group
-    assert k1[7] == f"8.45 vs 13.50, p = {2 / math.comb(20, 10):.2g}"
+    assert k1[8] == f"8.45 vs 13.50, p = {2 / math.comb(20, 10):.2g}"
     tied = mannwhitneyu([1.0] * 10, [0.9] * 10, method="asymptotic").pvalue  # ties: the normal approximation
-    assert k1[8] == f"1.00 vs 0.90, p = {tied:.2g}"
+    assert k1[9] == f"1.00 vs 0.90, p = {tied:.2g}"
     k9 = cells(next(line for line in lines if line.startswith("| k = 9 |")))
-    assert k9[3] == "—" and k9[5:] == ["", "", "", ""]  # no library results at k = 9: nothing to difference
+    assert k9[3] == "—" and k9[5:] == ["", "", "", "", ""]  # no library results at k = 9: nothing to difference
     assert len([line for line in lines if line.startswith("| k =")]) == 2
     # paired by seed: k = 1 only (no library seeds at k = 9); both succeed on 0–4, only library on 5–8, neither on 9
     paired = render_paired(TABLES["4.1"], "estimator_choices",

@@ -18,6 +18,7 @@ import pytest
 from pipps import charts as ch
 from pipps.cli import main
 from pipps.experiments.config import resolve_config
+from pipps.reporting.readings import clustered_interval, seed_values
 from pipps.experiments.records import (Diagnostics, ExperimentResult, MomentPrediction, ParticlePrediction, Timings,
                                        TrialResult)
 from pipps.experiments.tables import TABLES, cell_summaries, collect, wilson_interval
@@ -200,12 +201,19 @@ def test_bench_figure_is_log_log_and_marks_the_reference_error(tmp_path):
 # -- experiment figures --------------------------------------------------------------------------------------
 
 
-def _summary(method, k, seed, returns, *, task="cartpole_swingup", success=True, return_success=True, upright=None):
+def _summary(method, k, seed, returns, *, task="cartpole_swingup", success=True, return_success=True, upright=None,
+             final=None):
+    """A judged result summary; ``final = (passes, balanced)`` out of 10 final rollouts gives its per-seed readings."""
     cfg = resolve_config("thesis", task, method=method, seed=seed, **({"k": k, "cost": "angle"} if task != "unicycle" else {}))
     returns = np.asarray(returns, float)
-    return {"config": cfg, "eval_return": returns, "upright_fraction": np.ones(len(returns)) if upright is None else upright,
-            "success": success, "return_success": return_success, "final_return": float(returns[-1]), "wall_seconds": 60.0,
-            "path": f"{method}_{k}_{seed}.h5"}
+    out = {"config": cfg, "eval_return": returns, "upright_fraction": np.ones(len(returns)) if upright is None else upright,
+           "success": success, "return_success": return_success, "final_return": float(returns[-1]), "wall_seconds": 60.0,
+           "path": f"{method}_{k}_{seed}.h5"}
+    if final is not None:
+        passes, balanced = final
+        out["per_seed"] = seed_values(seed, np.where(np.arange(10) < passes, 10.0, 20.0), np.arange(10) < balanced,
+                                      10.0, 15.0, 0.5)
+    return out
 
 
 def test_curves_figure_draws_median_quartiles_and_threshold_per_cell(tmp_path):
@@ -250,8 +258,10 @@ def test_unicycle_curves_add_the_upright_fraction_on_which_success_is_judged(tmp
 def test_cells_figure_places_rates_intervals_and_thesis_values(tmp_path):
     from pipps.experiments.figures import cells_figure, record_cells
 
-    summaries = [_summary("tp", 1.0, s, [30, 10.0], success=s < 3, return_success=True) for s in range(4)]
-    summaries += [_summary("pilco", 16.0, s, [30, 20.0], success=False, return_success=False) for s in range(2)]
+    tp_final = [(10, 10), (9, 8), (7, 6), (3, 0)]  # (rollouts below the threshold, rollouts balanced) of 10
+    summaries = [_summary("tp", 1.0, s, [30, 10.0], success=s < 3, final=f) for s, f in enumerate(tp_final)]
+    summaries += [_summary("pilco", 16.0, s, [30, 20.0], success=False, return_success=False, final=(2 - 2 * s, 0))
+                  for s in range(2)]
     table = TABLES["4.1"]
     results = collect(table, summaries)
     rec, bp, _ = read_rrd(record_cells([(table, results)], tmp_path / "t.rrd"))
@@ -261,25 +271,25 @@ def test_cells_figure_places_rates_intervals_and_thesis_values(tmp_path):
     assert c.x.tick_labels == ("10⁻²", "1", "4", "9", "16")
     tp = positions(rec, f"/{c.path}/data/tp/rate")
     assert len(tp) == 1
-    np.testing.assert_allclose(tp[0, 1], c.xy(0.0, 0.75)[1])  # 3 of 4
+    np.testing.assert_allclose(tp[0, 1], c.xy(0.0, 29 / 40)[1])  # the headline: per trial, return, averaged over seeds
     assert tp[0, 0] > c.xy(1.0, 0.0)[0]  # row "k = 1", TP to the right of its centre (PILCO would be left)
     assert positions(rec, f"/{c.path}/data/pilco/rate")[0, 0] < c.xy(4.0, 0.0)[0]
-    lo, hi = wilson_interval(3, 4)
+    lo, hi = clustered_interval([p for p, _ in tp_final], [10] * 4)
     bar = strips(rec, f"/{c.path}/data/tp/interval")[0][:, 1]
     np.testing.assert_allclose(sorted(bar), sorted(c.xy(1.0, [hi, lo])[:, 1]))
-    assert labels(rec, f"/{c.path}/data/tp/counts") == ["3/4"] and labels(rec, f"/{c.path}/data/pilco/counts") == ["0/2"]
-    # the count's label box hangs below its anchor: it must end above the highest mark of the cell (the return rate, 1)
+    assert labels(rec, f"/{c.path}/data/tp/counts") == ["4"] and labels(rec, f"/{c.path}/data/pilco/counts") == ["2"]
+    # the label box hangs below its anchor: it must end above the highest mark of the cell (TP: the thesis' 0.99)
     anchor = positions(rec, f"/{c.path}/data/tp/counts")[0]
-    assert anchor[1] + ch.LABEL_DROP + ch.TEXT_HEIGHT <= c.xy(0.0, 1.0)[1]
-    anchor = positions(rec, f"/{c.path}/data/pilco/counts")[0]  # PILCO, k = 16: 0/2, above its interval's top
-    assert anchor[1] + ch.LABEL_DROP + ch.TEXT_HEIGHT <= c.xy(0.0, wilson_interval(0, 2)[1])[1]
+    assert anchor[1] + ch.LABEL_DROP + ch.TEXT_HEIGHT <= c.xy(0.0, 0.99)[1]
+    anchor = positions(rec, f"/{c.path}/data/pilco/counts")[0]  # PILCO, k = 16: above its interval's top
+    assert anchor[1] + ch.LABEL_DROP + ch.TEXT_HEIGHT <= c.xy(0.0, clustered_interval([2, 0], [10, 10])[1])[1]
     # the thesis' rate is marked in every row, ours or not: TP 0.82, 0.99, 0.95, 0.83, 0.40
     diamonds = strips(rec, f"/{c.path}/data/tp/thesis")
     assert len(diamonds) == 5
     centres = np.array([d[:-1].mean(0) for d in diamonds])
     np.testing.assert_allclose(centres[:, 1], c.xy(0.0, [0.82, 0.99, 0.95, 0.83, 0.40])[:, 1])
-    ret = strips(rec, f"/{c.path}/data/tp/return_rate")  # 4 of 4 by the return threshold
-    np.testing.assert_allclose(ret[0][:, 1], c.xy(0.0, 1.0)[1])
+    physical = strips(rec, f"/{c.path}/data/tp/physical_rate")  # per trial, physical: 24 of 40 rollouts balanced
+    np.testing.assert_allclose(physical[0][:, 1], c.xy(0.0, 24 / 40)[1])
 
 
 def _trial(index, T=30, S=4, predicted=None, diagnostics=None):
@@ -341,7 +351,7 @@ def test_cli_plot_draws_the_committed_unicycle_cells_and_curves(tmp_path, capsys
     assert "/curves/unicycle_tp/data/median" in rec and "/curves/unicycle_tp_upright/data/threshold" in rec
     assert main(["plot", *map(str, UNICYCLE), "--figure", "cells", "--out", str(out)]) == 0
     rec, _, _ = read_rrd(out)
-    assert labels(rec, "/cells/table_4_4/data/tp/counts") == [f"{len(UNICYCLE)}/{len(UNICYCLE)}"]
+    assert labels(rec, "/cells/table_4_4/data/tp/counts") == [f"{len(UNICYCLE)}"]
     assert "success rates in table(s) 4.4 (4 results counted over their cells)" in capsys.readouterr().out
 
 

@@ -55,10 +55,13 @@ def cells_figure(tables: list[tuple[Table, list[CellResult]]]) -> ch.Figure:
     width = max(c.size[0] for c in charts)
     charts = [ch.Chart(c.path, c.title, c.x, c.y, (width, c.size[1]), c.margins) for c in charts]
     methods = list(dict.fromkeys(m for t, rs in tables for m in _methods_with_results(t, rs)))
+    per_trial_return = any(r.n and r.headline is not None and r.headline.reading.name == "trial_return"
+                           for _, rs in tables for r in rs)
+    headline = "rollouts with return < threshold" if per_trial_return else "rollouts meeting the physical criterion"
     keys = [*[ch.Key(METHODS[m].label, method_color(m), "interval") for m in methods],
-            ch.Key("ours: success rate, 95 % Wilson interval, successes/seeds", ch.GREY, "interval")]
-    if any(r.n and r.return_successes is not None for _, rs in tables for r in rs):
-        keys.append(ch.Key("ours by the thesis' return threshold", ch.GREY, "bar"))
+            ch.Key(f"ours: fraction of {headline}, 95 % interval over seeds (label: seeds)", ch.GREY, "interval")]
+    if per_trial_return:
+        keys.append(ch.Key("ours: fraction of rollouts meeting the physical criterion", ch.GREY, "bar"))
     keys.append(ch.Key("thesis (100 seeds)", ch.GREY, "diamond"))
     return ch.figure(charts, 1 if len(charts) == 1 else 2, keys, "cells/legend")
 
@@ -89,12 +92,14 @@ def record_cells(tables: list[tuple[Table, list[CellResult]]], out: str | Path) 
                 hi = np.array([r.interval[1] for _, r in have])
                 ch.intervals(rec, c, f"{m}/interval", x, lo, hi, color, width=1.3)
                 ch.points(rec, c, f"{m}/rate", x, rate, color, size=4.0)
-                ret = [(xi, r.return_successes / r.n) for xi, (_, r) in zip(x, have) if r.return_successes is not None]
-                top = [max(h, r.return_successes / r.n if r.return_successes is not None else 0.0, r.cell.thesis or 0.0)
-                       for h, (_, r) in zip(hi, have)]  # the label above every mark of its cell
-                ch.text(rec, c, f"{m}/counts", x, top, [f"{r.successes}/{r.n}" for _, r in have], above=True)
-                if ret:
-                    ch.markers(rec, c, f"{m}/return_rate", [a for a, _ in ret], [b for _, b in ret], color, "bar")
+                physical = [(xi, r.by_reading["trial_physical"].rate) for xi, (_, r) in zip(x, have)
+                            if r.headline is not None and r.headline.reading.name != "trial_physical"
+                            and "trial_physical" in r.by_reading]
+                top = [max(h, r.cell.thesis or 0.0) for h, (_, r) in zip(hi, have)]  # the label above its cell's marks
+                ch.text(rec, c, f"{m}/counts", x, top, [f"{r.n}" for _, r in have], above=True)
+                if physical:
+                    ch.markers(rec, c, f"{m}/physical_rate", [a for a, _ in physical], [b for _, b in physical], color,
+                               "bar")
                 thesis = [(ri + _dodge(mi, len(methods)), r.cell.thesis) for ri, r in rows if r.cell.thesis is not None]
                 if thesis:
                     ch.markers(rec, c, f"{m}/thesis", [a for a, _ in thesis], [b for _, b in thesis], color, "diamond")

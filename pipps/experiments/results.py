@@ -336,4 +336,6 @@ def read_summary(path: str | os.PathLike) -> dict[str, Any]:
                 "balanced_fraction": (f["balanced_fraction"][()] if "balanced_fraction" in f
                                       else np.full(len(f["eval_return"]), np.nan)),
                 "final_eval_returns": last["eval_returns"][()],
+                "final_eval_upright": last["eval_upright"][()],
+                "final_trial_return": float(np.sum(last["costs"][()])),  # the final trial run on the system
                 "final_eval_balanced": last["eval_balanced"][()] if "eval_balanced" in last else None}

@@ -9,6 +9,7 @@ configurations of a sweep; ``render_table(table, summaries)`` prints our success
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from typing import Any, Iterable
 
@@ -16,6 +17,7 @@ import numpy as np
 
 from pipps.experiments.config import ConfigError, ExperimentConfig, canonical, resolve_config
 from pipps.experiments.methods import METHODS
+from pipps.reporting import readings
 
 
 @dataclasses.dataclass(frozen=True)
@@ -203,7 +205,9 @@ def judge(summaries: list[dict[str, Any]], resimulator=None) -> list[dict[str, A
     * ``return_success``: the thesis' return threshold (cart-pole; None for the unicycle);
     * ``final_balanced``: the final trial's fraction of rollouts meeting the physical criterion;
     * ``flip`` / ``return_flip``: the probability that a fresh evaluation flips each verdict;
-    * ``final_se``: the standard error of the final evaluated return.
+    * ``final_se``: the standard error of the final evaluated return;
+    * ``per_seed``: the seed's value under every reading of a success rate
+      (:func:`pipps.reporting.readings.seed_values`).
     """
     from pipps.experiments import criteria
 
@@ -239,6 +243,10 @@ def judge(summaries: list[dict[str, Any]], resimulator=None) -> list[dict[str, A
         s["success"] = bool(frac >= need)
         n = len(rets)
         s["flip"] = criteria.flip_probability_fraction(int(round(frac * n)), n, need)
+        unicycle = cfg.task == "unicycle"
+        s["per_seed"] = readings.seed_values(
+            cfg.seed, rets, s["final_eval_upright"] if unicycle else flags,
+            None if unicycle else s.get("final_trial_return"), None if unicycle else cfg.success_threshold, need)
     return summaries
 
 
@@ -274,22 +282,35 @@ class CellResult:
     final_returns: tuple[float, ...] = ()  # each counted seed's final evaluated return, in seed order
     final_balanced: tuple[float, ...] = ()  # each seed's fraction of final rollouts meeting the criterion (judged only)
     verdicts: tuple[bool, ...] = ()  # each counted seed's physical verdict, in seed order
+    per_seed: tuple[readings.SeedValues, ...] = ()  # each counted seed's value under every reading
+
+    @functools.cached_property
+    def by_reading(self) -> dict[str, readings.Rate]:
+        """The cell's rate under every reading that applies (:mod:`pipps.reporting.readings`)."""
+        return readings.rates(self.per_seed)
+
+    @property
+    def headline(self) -> readings.Rate | None:
+        """The rate the tables lead with: per trial by the return threshold (the thesis' counting,
+        docs/results.md), or per trial by the physical criterion where a task has no threshold."""
+        got = self.by_reading
+        return got.get(readings.HEADLINE) or got.get("trial_physical")
 
     @property
     def rate(self) -> float:
-        return self.successes / self.n if self.n else math.nan
+        h = self.headline
+        return h.rate if h is not None else math.nan
 
     @property
     def interval(self) -> tuple[float, float]:
-        return wilson_interval(self.successes, self.n)
+        h = self.headline
+        return h.interval if h is not None else (0.0, 1.0)
 
     @property
     def agrees(self) -> bool | None:
-        """Whether the thesis value lies inside our 95 % interval (None without data or thesis value)."""
-        if not self.n or self.cell.thesis is None:
-            return None
-        lo, hi = self.interval
-        return lo <= self.cell.thesis <= hi
+        """Whether the thesis value lies inside the headline rate's 95 % interval (None without data or thesis value)."""
+        h = self.headline
+        return None if h is None or self.cell.thesis is None else h.covers(self.cell.thesis)
 
 
 def _settings(cfg: ExperimentConfig) -> dict[str, Any]:
@@ -370,29 +391,37 @@ def collect(table: Table, summaries: list[dict[str, Any]], preset: str | None = 
             tuple(sorted(s["config"].seed for s in rows if s.get("flip", 0.0) > 0.05)),
             tuple(float(s["final_return"]) for s in rows),
             tuple(float(s["final_balanced"]) for s in rows if s.get("final_balanced") is not None),
-            tuple(bool(s["success"]) for s in rows)))
+            tuple(bool(s["success"]) for s in rows),
+            tuple(s["per_seed"] for s in rows if "per_seed" in s)))
     return out
+
+
+def _headline_caption(results: list[CellResult]) -> str:
+    """What the headline rate of these cells counts, in words."""
+    kinds = {r.headline.reading.name for r in results if r.n and r.headline is not None}
+    if kinds == {"trial_physical"}:
+        return "the fraction of the final policy's evaluation rollouts meeting the physical criterion, averaged over seeds"
+    return ("the fraction of the final policy's evaluation rollouts with return below the threshold, averaged over "
+            "seeds (the thesis' counting)")
 
 
 def render_table(table: Table, results: list[CellResult], *, show_empty: bool = False,
                  compare: tuple[str, str] = ("tp", "pilco")) -> str:
-    """Markdown: one row per table row, one column per method; each cell
-    ``ours [lo, hi] (n) / thesis`` by the physical criterion, with ``!`` where the thesis value lies
-    outside our interval and ``· return r`` the rate by the thesis' return threshold. Where both
-    methods of ``compare`` have results, a last column gives their difference with its 95 %
-    interval and Fisher's exact p. Under the table: the seeds on which the two verdicts differ and
-    those a fresh evaluation would flip with probability above 5 %."""
+    """Markdown, three parts. (1) The thesis' layout (rows × methods), each cell the headline rate
+    (:attr:`CellResult.headline`) with its 95 % interval over seeds and the number of seeds, next to
+    the thesis' value (``!`` where the thesis value lies outside our interval). (2) Every reading of
+    every cell side by side (:mod:`pipps.reporting.readings`). (3) Where both methods of
+    ``compare`` have results in a row, their difference under every reading with its interval and
+    the permutation p over seeds. Under the tables: the seeds whose per-seed physical and return
+    verdicts differ and those a fresh evaluation would flip with probability above 5 %."""
     by = {(r.cell.row, r.cell.method): r for r in results}
     methods = [m for m in table.methods if show_empty or any(by.get((row, m)) and by[(row, m)].n for row in table.rows)]
     if not methods:
         return f"**{table.title}**: no complete results for this table."
-    a, b = compare
-    paired = a in methods and b in methods
     labels = {m: METHODS[m].label for m in methods}
-    head = list(labels.values()) + ([f"{labels[a]} − {labels[b]} [95 %], Fisher p"] if paired else [])
-    lines = [f"**{table.title}** — ours: success rate by the physical criterion [95 % Wilson interval] (seeds) / "
-             "thesis (`!`: the thesis value lies outside our interval); `· return r`: the rate by the thesis' "
-             "return threshold", "", "| | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
+    lines = [f"**{table.title}** — ours: {_headline_caption(results)} [95 % interval over seeds] (seeds) / thesis "
+             "(`!`: the thesis value lies outside our interval)", "",
+             "| | " + " | ".join(labels.values()) + " |", "|---" * (len(labels) + 1) + "|"]
     for row in table.rows:
         cells = []
         for m in methods:
@@ -406,24 +435,65 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
                 continue
             lo, hi = r.interval
             flag = " !" if r.agrees is False else ""
-            ret = f" · return {r.return_successes / r.n:.2f}" if r.return_successes is not None else ""
-            cells.append(f"{r.rate:.2f} [{lo:.2f}, {hi:.2f}] ({r.n}) / {thesis}{flag}{ret}")
-        if paired:
-            ra, rb = by.get((row, a)), by.get((row, b))
-            if ra and rb and ra.n and rb.n:
-                lo, hi = difference_interval(ra.successes, ra.n, rb.successes, rb.n)
-                thesis = ("" if ra.cell.thesis is None or rb.cell.thesis is None
-                          else f" (thesis {ra.cell.thesis - rb.cell.thesis:+.2f})")
-                cells.append(f"{ra.rate - rb.rate:+.2f} [{lo:+.2f}, {hi:+.2f}], p = "
-                             f"{fisher_exact(ra.successes, ra.n, rb.successes, rb.n):.2g}{thesis}")
-            else:
-                cells.append("")
+            cells.append(f"{r.rate:.2f} [{lo:.2f}, {hi:.2f}] ({r.n}) / {thesis}{flag}")
         if any(c and not c.startswith("—") for c in cells) or show_empty:
             lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    lines += ["", render_readings(table, results)]
+    diffs = render_differences(table, results, compare)
+    if diffs:
+        lines += ["", diffs]
     notes = _cell_notes(results)
     if notes:
         lines += [""] + notes
     return "\n".join(lines)
+
+
+def _present_readings(results: list[CellResult]) -> list[readings.Reading]:
+    have = {name for r in results for name in r.by_reading}
+    return [rd for rd in readings.READINGS if rd.name in have]
+
+
+def render_readings(table: Table, results: list[CellResult]) -> str:
+    """Markdown: one row per cell with results, its rate under every reading with the 95 % interval
+    over seeds (per-seed readings also as a count), the thesis' value beside."""
+    shown = _present_readings(results)
+    head = ["", "method", "seeds", "thesis", *(("**" + rd.label + "**") if rd.name == readings.HEADLINE else rd.label
+                                                for rd in shown)]
+    lines = [f"**{table.title}**, every reading [95 % interval over seeds] (docs/results.md, \"How a success rate is "
+             "counted\")", "", "| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for r in results:
+        if not r.n:
+            continue
+        thesis = "–" if r.cell.thesis is None else f"{r.cell.thesis:.2f}"
+        got = r.by_reading
+        lines.append(f"| {r.cell.row} | {METHODS[r.cell.method].label} | {r.n} | {thesis} | "
+                     + " | ".join(got[rd.name].text() if rd.name in got else "–" for rd in shown) + " |")
+    return "\n".join(lines)
+
+
+def render_differences(table: Table, results: list[CellResult], compare: tuple[str, str] = ("tp", "pilco")) -> str:
+    """Markdown: per row where both methods of ``compare`` have results, ``a − b`` under every reading:
+    the difference with Newcombe's interval from the two seed-level intervals and the two-sided
+    permutation p over seeds (:func:`pipps.reporting.readings.compare`), and the thesis' difference."""
+    a, b = compare
+    by = {(r.cell.row, r.cell.method): r for r in results}
+    shown = _present_readings(results)
+    lines = []
+    for row in table.rows:
+        ra, rb = by.get((row, a)), by.get((row, b))
+        if not (ra and rb and ra.n and rb.n):
+            continue
+        ga, gb = ra.by_reading, rb.by_reading
+        cells = [readings.compare(ga[rd.name], gb[rd.name]).text() if rd.name in ga and rd.name in gb else "–"
+                 for rd in shown]
+        thesis = "–" if ra.cell.thesis is None or rb.cell.thesis is None else f"{ra.cell.thesis - rb.cell.thesis:+.2f}"
+        lines.append(f"| {row} | {thesis} | " + " | ".join(cells) + " |")
+    if not lines:
+        return ""
+    la, lb = METHODS[a].label, METHODS[b].label
+    return "\n".join([f"**{table.title}**, {la} − {lb} under every reading [95 % interval], permutation p over seeds",
+                      "", "| | thesis | " + " | ".join(rd.label for rd in shown) + " |",
+                      "|---" * (len(shown) + 2) + "|", *lines])
 
 
 def _signed_rank(d: np.ndarray) -> str:
@@ -484,11 +554,11 @@ def _cell_notes(results: list[CellResult], group: str = "") -> list[str]:
             notes.append(f"Warning: {name} pools results whose settings differ in {', '.join(r.mixed)}; read them "
                          "from separate folders.")
         if r.disagree:
-            notes.append(f"{name}: the return threshold and the physical criterion disagree on seed(s) "
-                         f"{', '.join(map(str, r.disagree))} (the physical criterion decides).")
+            notes.append(f"{name}: the per-seed verdicts by the return threshold and by the physical criterion differ "
+                         f"on seed(s) {', '.join(map(str, r.disagree))}.")
         if r.unsure:
-            notes.append(f"{name}: a fresh evaluation would flip the verdict with probability > 5 % on seed(s) "
-                         f"{', '.join(map(str, r.unsure))}.")
+            notes.append(f"{name}: a fresh evaluation would flip the per-seed physical verdict with probability > 5 % "
+                         f"on seed(s) {', '.join(map(str, r.unsure))}.")
     return notes
 
 
@@ -514,11 +584,10 @@ def split_by(summaries: list[dict[str, Any]], setting: str) -> list[tuple[Any, l
 
 
 def _rate(r: CellResult | None) -> str:
-    if r is None or not r.n:
+    """A cell's headline rate with its interval and seeds, and its per-seed physical count."""
+    if r is None or not r.n or r.headline is None:
         return "—"
-    lo, hi = r.interval
-    ret = f" · return {r.return_successes / r.n:.2f}" if r.return_successes is not None else ""
-    return f"{r.rate:.2f} [{lo:.2f}, {hi:.2f}] ({r.n}){ret}"
+    return f"{r.headline.text()} ({r.n}) · physical {r.successes}/{r.n}"
 
 
 def _difference(a: int, an: int, b: int, bn: int) -> str:
@@ -541,24 +610,27 @@ def _shift(a: tuple[float, ...], b: tuple[float, ...]) -> str:
 
 def render_comparison(table: Table, setting: str, groups: list[tuple[Any, list[CellResult]]]) -> str:
     """Markdown: the table's cells side by side for each value of ``setting`` (``groups``: value and
-    :func:`collect` of that value's results), one row per cell with results, the thesis value beside.
-    With exactly two values, the first minus the second with its 95 % interval (Newcombe) and
-    Fisher's exact p, by the physical criterion and by the thesis' return threshold; and, with more
+    :func:`collect` of that value's results), one row per cell with results, the thesis value beside:
+    each value's headline rate with its interval over seeds and its per-seed physical count. With
+    exactly two values, the first minus the second: under the headline reading (Newcombe's interval
+    from the seed-level intervals, permutation p over seeds), under the per-seed physical criterion
+    and the per-seed return threshold (Newcombe's interval and Fisher's exact p); and, with more
     power than a rate at ten seeds, the two medians of the seeds' final returns and of their
     fractions of rollouts balanced, each with the Mann–Whitney p. Under the table, each group's
-    seeds on which the two verdicts differ or that a fresh evaluation would flip with probability
-    above 5 %."""
+    seeds on which the two per-seed verdicts differ or that a fresh evaluation would flip with
+    probability above 5 %."""
     by = [{(r.cell.row, r.cell.method): r for r in results} for _, results in groups]
     names = [f"{setting} = {value}" for value, _ in groups]
     paired = len(groups) == 2
     head = ["", "method", "thesis", *names]
     if paired:
         a, b = (str(value) for value, _ in groups)
-        head += [f"{a} − {b} [95 %], Fisher p", f"by return: {a} − {b} [95 %], Fisher p",
+        head += [f"headline: {a} − {b} [95 %], permutation p", f"per seed, physical: {a} − {b} [95 %], Fisher p",
+                 f"per seed, return: {a} − {b} [95 %], Fisher p",
                  f"final return, median: {a} vs {b}, Mann–Whitney p", f"balanced, median: {a} vs {b}, Mann–Whitney p"]
-    lines = [f"**{table.title}**, by {setting} — success rate by the physical criterion [95 % Wilson interval] "
-             "(seeds) · the rate by the thesis' return threshold", "", "| " + " | ".join(head) + " |",
-             "|---" * len(head) + "|"]
+    lines = [f"**{table.title}**, by {setting} — headline rate ({_headline_caption([r for _, rs in groups for r in rs])}) "
+             "[95 % interval over seeds] (seeds) · successes by the per-seed physical criterion", "",
+             "| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for cell in table.cells:
         key = (cell.row, cell.method)
         rs = [g.get(key) for g in by]
@@ -569,6 +641,9 @@ def render_comparison(table: Table, setting: str, groups: list[tuple[Any, list[C
         if paired:
             ra, rb = rs
             both = ra is not None and rb is not None and ra.n and rb.n
+            heads = both and ra.headline is not None and rb.headline is not None and \
+                ra.headline.reading == rb.headline.reading
+            row.append(readings.compare(ra.headline, rb.headline).text() if heads else "")
             row.append(_difference(ra.successes, ra.n, rb.successes, rb.n) if both else "")
             by_return = both and ra.return_successes is not None and rb.return_successes is not None
             row.append(_difference(ra.return_successes, ra.n, rb.return_successes, rb.n) if by_return else "")
