@@ -181,12 +181,14 @@ def test_table_counts_cells_and_flags_disagreement():
 def test_seed_rows_list_each_counted_seed_in_order_with_both_counts():
     cfgs = table_configs("4.1", 6, "thesis", methods=["tp"], ks=[9.0])
     summaries = [{"config": c, "success": c.seed == 4, "return_success": c.seed < 3, "final_return": 12.0 + c.seed / 4,
-                  "final_balanced": 0.1 * c.seed, "wall_seconds": 60.0} for c in cfgs if c.seed != 3]
+                  "final_balanced": 0.1 * c.seed, "wall_seconds": 60.0, "per_seed": _per_seed(c.seed, 10 - c.seed)}
+                 for c in cfgs if c.seed != 3]
     summaries.reverse()  # the rows come out in seed order whatever the order read
     summaries.append(dict(summaries[0], config=summaries[0]["config"].replace(centre_std=None)))  # not counted
     text = render_seeds(TABLES["4.1"], summaries).splitlines()
-    assert text[2].count("|") == 8 and len(text) == 5
-    assert text[4] == ("| k = 9 | TP | 0–2, 4–5 | 12.00, 12.25, 12.50, 13.00, 13.25 | 0.00, 0.10, 0.20, 0.40, 0.50 "
+    assert text[2].count("|") == 9 and len(text) == 5
+    assert text[4] == ("| k = 9 | TP | 0–2, 4–5 | 12.00, 12.25, 12.50, 13.00, 13.25 | 1.00, 0.90, 0.80, 0.60, 0.50 "
+                       "| 0.00, 0.10, 0.20, 0.40, 0.50 "
                        "| 1 / 5 | 3 / 5 |")
     assert render_seeds(TABLES["4.4"], summaries) == ""
 

@@ -736,13 +736,17 @@ def render_seeds(table: Table, summaries: list[dict[str, Any]], preset: str | No
             continue
         judged = [s for s in rows if s.get("return_success") is not None]
         by_return = f"{sum(bool(s['return_success']) for s in judged)} / {len(judged)}" if judged else "–"
+        below = [s["per_seed"].get("trial_return") if "per_seed" in s else None for s in rows]
+        below = "–" if any(b is None for b in below) else ", ".join(f"{b:.2f}" for b in below)
         lines.append(f"| {cell.row} | {METHODS[cell.method].label} | {_seed_ranges([s['config'].seed for s in rows])} | "
-                     + ", ".join(f"{s['final_return']:.2f}" for s in rows) + " | "
+                     + ", ".join(f"{s['final_return']:.2f}" for s in rows) + f" | {below} | "
                      + ", ".join(f"{s['final_balanced']:.2f}" for s in rows) + " | "
                      + f"{sum(bool(s['success']) for s in rows)} / {len(rows)} | {by_return} |")
     if not lines:
         return ""
-    return "\n".join([f"**{table.title}**, every counted seed: final returns, the final trial's fraction of rollouts "
-                      "meeting the physical criterion, and the counts", "",
-                      "| | method | seeds | final returns | balanced / upright fractions | physical | return < threshold |",
-                      "|---|---|---|---|---|---|---|", *lines])
+    return "\n".join([f"**{table.title}**, every counted seed: final returns (the mean of the final trial's evaluation "
+                      "rollouts), the fraction of those rollouts below the threshold and the fraction meeting the "
+                      "physical criterion, and the per-seed counts", "",
+                      "| | method | seeds | final returns | below-threshold fractions | balanced / upright fractions "
+                      "| per seed, physical | per seed, mean return |",
+                      "|---|---|---|---|---|---|---|---|", *lines])
