@@ -338,4 +338,5 @@ def read_summary(path: str | os.PathLike) -> dict[str, Any]:
                 "final_eval_returns": last["eval_returns"][()],
                 "final_eval_upright": last["eval_upright"][()],
                 "final_trial_return": float(np.sum(last["costs"][()])),  # the final trial run on the system
+                "final_trial_states": last["states"][()], "final_trial_valid": last["valid"][()],
                 "final_eval_balanced": last["eval_balanced"][()] if "eval_balanced" in last else None}

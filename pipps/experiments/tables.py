@@ -246,8 +246,24 @@ def judge(summaries: list[dict[str, Any]], resimulator=None) -> list[dict[str, A
         unicycle = cfg.task == "unicycle"
         s["per_seed"] = readings.seed_values(
             cfg.seed, rets, s["final_eval_upright"] if unicycle else flags,
-            None if unicycle else s.get("final_trial_return"), None if unicycle else cfg.success_threshold, need)
+            None if unicycle else s.get("final_trial_return"), None if unicycle else cfg.success_threshold, need,
+            _system_trial_physical(cfg, s))
     return summaries
+
+
+def _system_trial_physical(cfg: ExperimentConfig, summary: dict[str, Any]) -> bool | None:
+    """Whether the final trial run on the system meets the physical criterion: the unicycle stayed
+    upright for the whole trial, the cart-pole ended balanced (:func:`pipps.experiments.criteria.balanced`
+    with the configuration's bounds). None where the summary lacks the trial."""
+    from pipps.experiments import criteria
+
+    if cfg.task == "unicycle":
+        valid = summary.get("final_trial_valid")
+        return None if valid is None else bool(np.all(valid))
+    states = summary.get("final_trial_states")
+    if states is None:
+        return None
+    return bool(criteria.balanced(np.asarray(states), cfg.balance_steps, cfg.balance_angle, cfg.balance_position))
 
 
 def fisher_exact(a_successes: int, a_n: int, b_successes: int, b_n: int) -> float:

@@ -21,6 +21,7 @@ reading             unit       the per-seed value
                                swung up and balanced at the end; unicycle: stayed upright)
 ``seed_physical``   per seed   1 if at least the configured fraction of rollouts meets it (0.5 cart-pole,
                                0.95 unicycle)
+``system_physical`` per seed   1 if the final trial run on the system meets it
 ==================  =========  ==============================================================================
 
 A cell's rate under a reading is the mean of the per-seed values. The unicycle has no return
@@ -66,12 +67,14 @@ READINGS: tuple[Reading, ...] = (
             "fraction of the final policy's evaluation rollouts with return below the threshold, averaged over seeds"),
     Reading("seed_return", "per seed, mean return", False,
             "seeds whose mean evaluation return is below the threshold"),
-    Reading("system_trial", "final system trial", False,
+    Reading("system_trial", "final system trial, return", False,
             "seeds whose final trial on the system (the one the learner saw) has return below the threshold"),
     Reading("trial_physical", "per trial, physical", True,
             "fraction of evaluation rollouts meeting the physical criterion, averaged over seeds"),
     Reading("seed_physical", "per seed, physical", False,
             "seeds with at least the configured fraction of rollouts meeting the physical criterion"),
+    Reading("system_physical", "final system trial, physical", False,
+            "seeds whose final trial on the system meets the physical criterion"),
 )
 BY_NAME = {r.name: r for r in READINGS}
 #: the reading the tables lead with, chosen from the thesis' words (module docstring; docs/results.md)
@@ -97,20 +100,22 @@ class SeedValues:
 
 
 def seed_values(seed: int, eval_returns, flags, system_return: float | None, threshold: float | None,
-                required_fraction: float) -> SeedValues:
+                required_fraction: float, system_flag: bool | None = None) -> SeedValues:
     """The per-seed values of every reading from the final trial of one experiment.
 
     ``eval_returns``: the (R,) evaluation returns; ``flags``: the (R,) physical verdicts per rollout
     (balanced or upright); ``system_return``: the return of the final trial run on the system (None
     where it has no return reading); ``threshold``: the return threshold (None: no return readings);
-    ``required_fraction``: the fraction of rollouts the per-seed physical verdict asks for."""
+    ``required_fraction``: the fraction of rollouts the per-seed physical verdict asks for;
+    ``system_flag``: whether the final system trial meets the physical criterion (None: not known)."""
     r = np.asarray(eval_returns, dtype=float)
     f = np.asarray(flags, dtype=bool)
     if r.ndim != 1 or r.size == 0 or f.shape != r.shape:
         raise ValueError(f"seed {seed}: eval_returns and flags must be 1-d of one nonzero length, "
                          f"got shapes {r.shape} and {f.shape}")
     frac = float(np.mean(f))
-    values = {"trial_physical": frac, "seed_physical": float(frac >= required_fraction - 1e-12)}
+    values = {"trial_physical": frac, "seed_physical": float(frac >= required_fraction - 1e-12),
+              "system_physical": None if system_flag is None else float(bool(system_flag))}
     if threshold is not None:
         values["trial_return"] = float(np.mean(r < threshold))
         values["seed_return"] = float(np.mean(r) < threshold)
