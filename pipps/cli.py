@@ -60,6 +60,16 @@ def _layout(args, experiments: int) -> str:
     return layout
 
 
+def _method_pair(text: str) -> tuple[str, str]:
+    """``A,B``: two method names of the registry (pipps table --compare)."""
+    from pipps.experiments.methods import METHODS
+
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 2 or any(p not in METHODS for p in parts):
+        raise argparse.ArgumentTypeError(f"expected two methods as A,B from {', '.join(METHODS)}, got {text!r}")
+    return parts[0], parts[1]
+
+
 def _nonnegative_float(text: str) -> float:
     try:
         value = float(text)
@@ -190,6 +200,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "per cell its median and quartiles over the seeds")
     tb.add_argument("--per-seed", action="store_true",
                     help="also print, per cell, every seed's final return and fraction of rollouts balanced (upright)")
+    tb.add_argument("--compare", default="tp,pilco", type=_method_pair, metavar="A,B",
+                    help="the two methods whose difference each table gives under every reading (default tp,pilco)")
     tb.add_argument("--by", default=None, metavar="SETTING",
                     help="compare the results by one setting's value (e.g. estimator_choices): each cell's rate per "
                          "value side by side, with the difference of two values and Fisher's p; results that depart "
@@ -484,7 +496,7 @@ def _print_tables(args, tables, counted) -> int:
     for t in tables:
         cells = collect(t, counted, preset=args.preset, custom=args.custom)
         if any(c.n for c in cells) or args.table:
-            print(render_table(t, cells))
+            print(render_table(t, cells, compare=args.compare))
             print()
             printed += 1
             if args.per_seed and any(c.n for c in cells):
