@@ -5,6 +5,10 @@ pole and the cart (docs/results.md, the flat-cost plateaus of k = 16 TP seed 2 a
 docs/estimator-variance.md, the library's and the thesis' k_LR rules while learning).
 
     python experiments/trial_traces.py results/thesis/cartpole_swingup_angle_k16_tp_thesis_s2.h5
+    python experiments/trial_traces.py --summary results/thesis/cartpole_swingup_angle_k1_{rp,lr,gr,tp}_thesis_s*.h5
+
+``--summary`` prints one line per file instead: the final return and the largest per-trial median
+gradient norm with the trial it occurred in (RP's exploding gradients in chaos, docs/results.md).
 
 Unfinished files are read too (no checksum verification). Cart-pole state order [x, v, ω, θ].
 """
@@ -21,7 +25,24 @@ def _mean(values) -> float:
     return float(np.nanmean(values)) if np.isfinite(values).any() else float("nan")
 
 
+def summary(paths) -> None:
+    print("| file | method | seed | final return | largest median gradient norm (trial) |")
+    print("|---|---|---|---|---|")
+    for path in paths:
+        result = read_result(path, verify=False)
+        learned = [t for t in result.trials if t.kind == "learned" and hasattr(t.opt_trace, "grad_norm")]
+        if not learned:
+            continue
+        norms = [float(np.median(t.opt_trace.grad_norm)) for t in learned]
+        i = int(np.argmax(norms))
+        cfg = result.config
+        print(f"| {path} | {cfg.method} | {cfg.seed} | {result.final_return:.2f} | {norms[i]:.2g} ({learned[i].index}) |")
+
+
 def main(paths) -> None:
+    if paths and paths[0] == "--summary":
+        summary(paths[1:])
+        return
     for path in paths:
         print(path)
         for t in read_result(path, verify=False).trials:
