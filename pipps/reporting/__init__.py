@@ -1,0 +1,1 @@
+"""Reporting experiments: how success rates are counted and compared (:mod:`pipps.reporting.readings`)."""

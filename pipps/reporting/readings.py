@@ -8,21 +8,18 @@ The thesis (§4.5.3) describes its success rate in words that admit more than on
     Trials were considered successful if the pendulum was swung up and kept balanced."
 
 Every reading below is computed from the final learned trial of each experiment (seed) and
-reported side by side (docs/results.md, "How a success rate is counted"):
+reported side by side (docs/results.md, "How a success rate is counted"); the value per seed:
 
-==================  =========  ==============================================================================
-reading             unit       the per-seed value
-==================  =========  ==============================================================================
-``trial_return``    per trial  fraction of the final policy's evaluation rollouts whose return is below the
-                               threshold (the headline: "trials were considered successful")
-``seed_return``     per seed   1 if the mean of those rollouts' returns is below the threshold, else 0
-``system_trial``    per seed   1 if the final trial run on the system (the one the learner saw) is below it
-``trial_physical``  per trial  fraction of evaluation rollouts that meet the physical criterion (cart-pole:
-                               swung up and balanced at the end; unicycle: stayed upright)
-``seed_physical``   per seed   1 if at least the configured fraction of rollouts meets it (0.5 cart-pole,
-                               0.95 unicycle)
-``system_physical`` per seed   1 if the final trial run on the system meets it
-==================  =========  ==============================================================================
+- ``trial_return`` (per trial; the headline, "trials were considered successful"): the fraction of
+  the final policy's evaluation rollouts whose return is below the threshold;
+- ``seed_return`` (per seed): 1 if the mean of those rollouts' returns is below the threshold, else 0;
+- ``system_trial`` (per seed): 1 if the final trial run on the system (the one the learner saw) is
+  below it;
+- ``trial_physical`` (per trial): the fraction of evaluation rollouts that meet the physical
+  criterion (cart-pole: swung up and balanced at the end; unicycle: stayed upright);
+- ``seed_physical`` (per seed): 1 if at least the configured fraction of rollouts meets it (0.5
+  cart-pole, 0.95 unicycle);
+- ``system_physical`` (per seed): 1 if the final trial run on the system meets it.
 
 A cell's rate under a reading is the mean of the per-seed values. The unicycle has no return
 threshold in the thesis, so its return readings are absent (``None``) and its physical readings
