@@ -1,4 +1,4 @@
-"""Success judged on the true system (experiments.md "Success"; docs/results.md "The physical criterion").
+"""Success judged on the true system (experiments.md "Success"; docs/results-analyses.md "The physical criterion").
 
 The thesis judged a cart-pole experiment a success when "the pendulum was swung up and kept
 balanced", checked by looking at the final trajectory distributions; its return threshold (15)
@@ -27,7 +27,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-#: The physical criterion's settings (ExperimentConfig fields of the same names); docs/results.md gives the reasons.
+#: The physical criterion's settings (ExperimentConfig fields of the same names); docs/results-analyses.md gives the reasons.
 BALANCE_STEPS = 10
 BALANCE_ANGLE = 0.3
 BALANCE_POSITION = 0.5
