@@ -94,7 +94,7 @@ def test_each_method_uses_the_settings_of_its_pieces():
     assert set(METHOD_SETTINGS) == {s for m in METHODS.values() for s in m.settings}
     for m in METHODS.values():
         assert set(m.settings) <= set(METHOD_SETTINGS) and m.unused == set(METHOD_SETTINGS) - set(m.settings)
-    assert METHODS["pilco"].settings == ("pilco_linesearches",)
+    assert METHODS["pilco"].settings == ("pilco_linesearches", "pilco_policy_noise")
     assert set(METHODS["rp_fs"].settings) == {"policy_evals", "num_particles", "store_particles", "variance_tol"}
     assert "variance_tol" not in METHODS["tp-sf"].settings  # no GP variance to approximate
     assert "noise_boost_tp" in METHODS["tp+sn"].settings and "noise_boost_tp" not in METHODS["tp"].settings
@@ -173,8 +173,9 @@ IGNORED = [("pilco", dict(num_particles=7, learning_rate=9.0, estimator_choices=
            ("rp", dict(estimator_choices="library", noise_boost_tp=3.0)),
            ("rp_fs", dict(learning_rate=9.0, momentum=0.5)),
            ("tp-sf", dict(variance_tol=1e-2)),
-           ("tp", dict(noise_boost_gtp=3.0, pilco_linesearches=5))]
-COUNTED = [("pilco", dict(pilco_linesearches=5)), ("tp+sn", dict(noise_boost_tp=3.0)),
+           ("tp", dict(noise_boost_gtp=3.0, pilco_linesearches=5)), ("gr", dict(pilco_policy_noise=True))]
+COUNTED = [("pilco", dict(pilco_linesearches=5)), ("pilco", dict(pilco_policy_noise=True)),
+           ("tp+sn", dict(noise_boost_tp=3.0)),
            ("tp", dict(estimator_choices="library")), ("rp", dict(num_particles=7))]
 
 

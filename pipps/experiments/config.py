@@ -111,6 +111,9 @@ class ExperimentConfig:
     variance_tol: float = 0.0
     # PILCO
     pilco_linesearches: int | None = None  # None: PILCO's budget for the task (tasks.md §2, §3.7)
+    # True: the policy sees the predicted state plus the GP noise variances halved, as PILCO's release V0.9
+    # did; False: the latent state, as its later code (a0b48b7) and every result before the setting existed
+    pilco_policy_noise: bool = False
     # GP model
     gp_chunk: int = 100  # data padded to multiples of this (few compiled sizes; 1: exact sizes)
     gp_max_iters: int = 300
@@ -215,6 +218,8 @@ def validate(c: ExperimentConfig) -> None:
     for name in ("noise_boost_tp", "noise_boost_gtp"):
         v = getattr(c, name)
         _need(finite(v) and v > 0, name, f"must be > 0, got {v!r}")
+    _need(isinstance(c.pilco_policy_noise, bool), "pilco_policy_noise",
+          f"must be true or false, got {c.pilco_policy_noise!r}")
     if c.pilco_linesearches is not None:
         _need(isinstance(c.pilco_linesearches, int) and c.pilco_linesearches >= 1, "pilco_linesearches",
               f"must be an integer >= 1, got {c.pilco_linesearches!r}")
@@ -370,7 +375,13 @@ def from_dict(d: dict[str, Any]) -> ExperimentConfig:
 #: code did before the setting existed, used when a stored configuration lacks it (so a later
 #: change of a default cannot relabel an old file).
 LEGACY_VALUES: dict[str, Any] = {"variance_tol": 0.0, "balance_steps": 10, "balance_angle": 0.3,
-                                 "balance_position": 0.5, "balanced_fraction": 0.5}
+                                 "balance_position": 0.5, "balanced_fraction": 0.5, "pilco_policy_noise": False}
+
+#: Settings added after result files were first written that :func:`config_hash` leaves out while they
+#: hold their :data:`LEGACY_VALUES` value, so that every configuration that leaves them alone keeps the
+#: hash, and the file name, it had before they existed. They stay in :func:`canonical` (every
+#: configuration has the same keys there), so resume and pooling compare them like any other setting.
+HASHED_WHEN_SET = ("pilco_policy_noise",)
 
 
 def _legacy_protocol(cfg: ExperimentConfig) -> ExperimentConfig:
@@ -435,8 +446,13 @@ def same_experiment(a: ExperimentConfig, b: ExperimentConfig) -> bool:
 
 
 def config_hash(cfg: ExperimentConfig) -> str:
-    """SHA-256 of the canonical configuration: a result's identity (stored as ``config_hash``)."""
-    text = json.dumps(canonical(cfg), sort_keys=True)
+    """SHA-256 of the canonical configuration: a result's identity (stored as ``config_hash``). The
+    :data:`HASHED_WHEN_SET` settings enter only where they depart from their legacy value."""
+    d = canonical(cfg)
+    for name in HASHED_WHEN_SET:
+        if d[name] == LEGACY_VALUES[name]:
+            del d[name]
+    text = json.dumps(d, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()
 
 

@@ -62,9 +62,10 @@ MOMENTUM = Optimizer("momentum", "normalized momentum on the estimator's gradien
 #: quasi-Newton on one noise draw's particle objective, fixed for the whole search (PEGASUS)
 FIXED_SEED = Optimizer("fixed_seed", "quasi-Newton on a fixed seed's particle objective, policy_evals evaluations",
                        ("policy_evals",))
-#: PILCO's quasi-Newton on the moment-matching objective, with its line-search budget (tasks.md §2, §3.7)
+#: PILCO's quasi-Newton on the moment-matching objective, with its line-search budget (tasks.md §2, §3.7);
+#: ``pilco_policy_noise`` adds PILCO V0.9's policy-input noise term to that objective (docs/pilco.md)
 PILCO_SEARCH = Optimizer("pilco", "quasi-Newton on the moment-matching objective, PILCO's line-search budget",
-                         ("pilco_linesearches",))
+                         ("pilco_linesearches", "pilco_policy_noise"))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -226,8 +226,9 @@ def _pilco_optimizer(cfg: ExperimentConfig, problem: Problem, axis) -> Optimize:
 
     del axis
     budget = pilco_budget(problem) if cfg.pilco_linesearches is None else pilco_budget(problem, length=cfg.pilco_linesearches)
-    search_cfg = PolicySearchConfig(optimizer=budget, horizon=cfg.horizon)
-    predict = jax.jit(lambda policy, model: trajectory(problem, policy, model, horizon=cfg.horizon))
+    search_cfg = PolicySearchConfig(optimizer=budget, horizon=cfg.horizon, policy_noise=cfg.pilco_policy_noise)
+    predict = jax.jit(lambda policy, model: trajectory(problem, policy, model, horizon=cfg.horizon,
+                                                       policy_noise=cfg.pilco_policy_noise))
 
     def optimize_one(key, policy, model, progress: Progress) -> Optimized:
         del key

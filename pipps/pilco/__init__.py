@@ -4,7 +4,8 @@ Closed-form blocks (each returns ``GaussianMap(M, S, C)`` in the §0 convention)
 :func:`saturation_moments` (§5.3), :func:`control_moments` / :func:`unsquashed_moments`
 (§5.2 + §5.3), :func:`gp_moments` (§5.4, full GP and FITC alike), :func:`dynamics_moments`
 (GP or any model with ``moments``). Assembly: :func:`propagate` (§5.5), :func:`objective`
-(``J = Σ_{t=1..H} E[c(x_t)]``, one ``lax.scan``), :func:`trajectory`. Policy search:
+(``J = Σ_{t=1..H} E[c(x_t)]``, one ``lax.scan``), :func:`trajectory`; :func:`policy_input_noise` is
+the PILCO V0.9 policy-input noise term their ``policy_noise`` option adds. Policy search:
 :func:`optimize_policy`.
 """
 
@@ -21,6 +22,7 @@ from pipps.pilco.propagate import (
     PilcoTrajectory,
     dynamics_moments,
     objective,
+    policy_input_noise,
     propagate,
     state_control_joint,
     step_moments,
@@ -31,6 +33,6 @@ from pipps.pilco.saturation import saturation_moments
 __all__ = [
     "PILCO_BUDGETS", "PilcoTrajectory", "PolicySearchConfig", "RBF_SECOND_MOMENT_JITTER",
     "control_moments", "dynamics_moments", "gp_moments", "linear_controller_moments", "objective",
-    "optimize_policy", "pilco_budget", "propagate", "rbf_controller_moments", "saturation_moments",
-    "se_moments", "state_control_joint", "step_moments", "trajectory", "unsquashed_moments",
+    "optimize_policy", "pilco_budget", "policy_input_noise", "propagate", "rbf_controller_moments",
+    "saturation_moments", "se_moments", "state_control_joint", "step_moments", "trajectory", "unsquashed_moments",
 ]

@@ -44,12 +44,16 @@ class PolicySearchConfig:
       checkpoint: rematerialise each step in the backward pass (``jax.checkpoint``): H× less
         memory for the stored (E², n, n) intermediates and, measured on the cart-pole benchmark
         (docs/pilco.md), no slower — the default here. Same value and gradient.
+      policy_noise: the policy sees the state distribution plus the model's noise variances
+        halved, as PILCO's release V0.9 did (:func:`pipps.pilco.propagate.objective`); False
+        (default): the latent state, as the later code (``a0b48b7``).
     """
 
     optimizer: QuasiNewtonConfig | None = None
     model_uncertainty: bool = True
     horizon: int | None = None
     checkpoint: bool = True
+    policy_noise: bool = False
 
 
 def pilco_budget(task: Problem, **overrides) -> QuasiNewtonConfig:
@@ -65,7 +69,7 @@ def _search(task: Problem, opt: QuasiNewtonConfig, config: PolicySearchConfig, p
     def J(p):
         return objective(
             task, p, model, horizon=config.horizon, model_uncertainty=config.model_uncertainty,
-            checkpoint=config.checkpoint,
+            checkpoint=config.checkpoint, policy_noise=config.policy_noise,
         )
 
     return minimize(J, policy, opt)

@@ -18,6 +18,20 @@ composed from the blocks' ``C``); :func:`propagate` returns ``(μ', Σ')``.
 ``J(θ) = Σ_{t=1..H} E[c(x_t)]`` from the task's planning start ``x_0 ~ N(μ_0^x, Σ_0^x)`` (the
 cost of ``x_0`` is not included) is one ``lax.scan``; everything is pure, differentiable by
 autodiff and vmappable (over policies, models or start distributions).
+
+**Policy input noise** (``policy_noise=True`` of :func:`objective` and :func:`trajectory`; an
+``input_noise`` array of the step functions). The PILCO code's release V0.9 (``a65d266``) let the
+policy see a noisy measurement of the state: in ``propagate.m``/``propagated.m`` it forms
+``ss = S + diag(sn2)`` with ``sn2 = exp(2·hyp(end, :))`` (the GP outputs' noise variances σ²_{n,a}),
+halved for the difference targets (``sn2(difi)/2``; every model-state component here is one),
+trig-augments ``N(m, ss)`` and evaluates the controller there (``policy.fcn(policy, mm(poli),
+ss(poli, poli))``). The state's own distribution is untouched, and ``Cov[x̃, u]`` is filled with the
+*un-inflated* joint, ``q = S(j, poli)·C`` — ``Σ̃_{:,P} C_u`` with ``C_u = ss_PP⁻¹ Cov_ss[x̃_P, u]``
+computed at the inflated input. For policy inputs that are model-state components (no sin/cos)
+this is the exact joint of ``x`` and ``u = π(x_P + ε)``, ``ε ~ N(0, diag(sn2))`` independent of x,
+since ``Cov[x, x_P + ε] = Σ_{:,P}``; for sin/cos inputs it keeps the latent trig
+cross-covariances, as the code does. Commit ``a0b48b7`` removed the term; the default (off,
+``input_noise=None``) follows it and runs exactly the program it ran before the option existed.
 """
 
 from __future__ import annotations
@@ -72,8 +86,28 @@ def _selection(rows: int, idx) -> np.ndarray:
     return sel
 
 
-def state_control_joint(task: Problem, policy, mean: jax.Array, cov: jax.Array):
+def policy_input_noise(task: Problem, model) -> jax.Array:
+    """(D,) the variances PILCO V0.9 adds to the state covariance given to the policy (module doc):
+    ``σ²_{n,a}/2`` for each model-state component ``a``, from GP output ``a``'s noise variance
+    (halved: every component is a difference target, tasks.md §1). ``model``: a
+    :class:`~pipps.gp.GPPosterior` (or its :class:`WeightedGP`) or any model with ``noise_variance``."""
+    post = model.post if isinstance(model, WeightedGP) else model
+    noise = getattr(post, "noise_variance", None)
+    if noise is None:
+        raise TypeError(f"model of type {type(post).__name__} has no noise_variance for the policy input noise")
+    noise = jnp.asarray(noise)
+    if noise.shape != (task.model_dim,):
+        raise ValueError(f"policy input noise needs one GP output per model-state component "
+                         f"({task.model_dim}), the model has noise variances of shape {noise.shape}")
+    return 0.5 * noise
+
+
+def state_control_joint(task: Problem, policy, mean: jax.Array, cov: jax.Array, input_noise=None):
     """Joint Gaussian of ``[x̃; u]`` (§5.5 steps 1–2).
+
+    ``input_noise``: None (default), or (D,) variances added to Σ for the policy's input only
+    (PILCO V0.9, module doc): the controller is evaluated at the trig augmentation of
+    ``N(μ, Σ + diag(input_noise))``, and ``Cov[x̃, u] = Σ̃_{:,P} C_u`` with the un-inflated Σ̃.
 
     Returns:
       ``(mean (D̃+F,), cov (D̃+F, D̃+F), C (D, D̃+F))`` with ``C = Σ⁻¹Cov[x, [x̃; u]]`` composed
@@ -81,7 +115,11 @@ def state_control_joint(task: Problem, policy, mean: jax.Array, cov: jax.Array):
     """
     m_aug, s_aug, c_trig = trig_augment(mean, cov, task.angle_idx)
     p_idx = np.asarray(task.policy_input_idx, dtype=int)
-    ctrl = control_moments(policy, m_aug[p_idx], s_aug[np.ix_(p_idx, p_idx)])
+    if input_noise is None:
+        m_in, s_in = m_aug, s_aug
+    else:  # the noisy measurement's distribution, augmented as the state's is (PILCO's mm, ss)
+        m_in, s_in, _ = trig_augment(mean, cov + jnp.diag(input_noise), task.angle_idx)
+    ctrl = control_moments(policy, m_in[p_idx], s_in[np.ix_(p_idx, p_idx)])
     lifted = GaussianMap(ctrl.M, ctrl.S, jnp.asarray(_selection(m_aug.shape[0], p_idx)) @ ctrl.C)
     m_joint, s_joint = append_map(m_aug, s_aug, lifted)
     c_aug = jnp.concatenate([jnp.eye(mean.shape[0], dtype=cov.dtype), c_trig], axis=1)
@@ -96,13 +134,16 @@ def step_moments(
     cov: jax.Array,
     *,
     model_uncertainty: bool = True,
+    input_noise: jax.Array | None = None,
 ) -> GaussianMap:
     """One moment-matching step as a Gaussian map (tasks.md §5.5).
+
+    ``input_noise``: see :func:`state_control_joint` (None: the policy sees the state's distribution).
 
     Returns ``GaussianMap(μ', Σ', C)`` with ``C = Σ⁻¹Cov[x_t, x_{t+1}] = I + C_xz C_Δ``.
     """
     n_x = task.model_dim
-    m_joint, s_joint, c_joint = state_control_joint(task, policy, mean, cov)
+    m_joint, s_joint, c_joint = state_control_joint(task, policy, mean, cov, input_noise)
     n_aug = task.augmented_dim
     z_idx = np.concatenate([np.asarray(task.gp_input_idx, dtype=int), n_aug + np.arange(task.action_dim)])
     delta = dynamics_moments(
@@ -123,9 +164,10 @@ def propagate(
     cov: jax.Array,
     *,
     model_uncertainty: bool = True,
+    input_noise: jax.Array | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """One moment-matching step ``N(μ, Σ) → N(μ', Σ')`` of the model state (tasks.md §5.5)."""
-    g = step_moments(task, policy, model, mean, cov, model_uncertainty=model_uncertainty)
+    g = step_moments(task, policy, model, mean, cov, model_uncertainty=model_uncertainty, input_noise=input_noise)
     return g.M, g.S
 
 
@@ -136,13 +178,15 @@ def _start(task: Problem, init) -> tuple[jax.Array, jax.Array]:
     return jnp.asarray(mean), jnp.asarray(cov)
 
 
-def _scan_steps(task, policy, model, init, horizon, model_uncertainty, checkpoint, keep_states):
+def _scan_steps(task, policy, model, init, horizon, model_uncertainty, checkpoint, keep_states, policy_noise=False):
     H = task.horizon if horizon is None else int(horizon)
+    input_noise = policy_input_noise(task, model) if policy_noise else None  # once, not at every step
     if model_uncertainty and isinstance(model, GPPosterior):
         model = weighted(model)  # the pair weights once, not at every step (1.15x measured, docs/pilco.md)
 
     def step(carry, _):
-        mean, cov = propagate(task, policy, model, *carry, model_uncertainty=model_uncertainty)
+        mean, cov = propagate(task, policy, model, *carry, model_uncertainty=model_uncertainty,
+                              input_noise=input_noise)
         c_mean, c_var = task.cost.expected(mean, cov)
         out = (mean, cov, c_mean, c_var) if keep_states else c_mean
         return (mean, cov), out
@@ -161,6 +205,7 @@ def objective(
     init: tuple[jax.Array, jax.Array] | None = None,
     model_uncertainty: bool = True,
     checkpoint: bool = False,
+    policy_noise: bool = False,
 ) -> jax.Array:
     """PILCO's ``J(θ) = Σ_{t=1..H} E[c(x_t)]`` by moment matching (tasks.md §1 step 2, §5).
 
@@ -173,9 +218,12 @@ def objective(
       model_uncertainty: static; False drops §5.4's ``E_z[var_f]`` term.
       checkpoint: static; recompute each step in the backward pass (``jax.checkpoint``) instead
         of storing its intermediates — H× less memory for about one extra forward pass.
+      policy_noise: static; True evaluates the policy at the state distribution plus the model's
+        noise variances halved, as PILCO V0.9 did (module doc, :func:`policy_input_noise`); False
+        (default) follows the later code (``a0b48b7``): the policy sees the latent state.
     """
     require_float64("pipps.pilco.objective")
-    _, costs = _scan_steps(task, policy, model, init, horizon, model_uncertainty, checkpoint, False)
+    _, costs = _scan_steps(task, policy, model, init, horizon, model_uncertainty, checkpoint, False, policy_noise)
     return jnp.sum(costs)
 
 
@@ -187,12 +235,14 @@ def trajectory(
     horizon: int | None = None,
     init: tuple[jax.Array, jax.Array] | None = None,
     model_uncertainty: bool = True,
+    policy_noise: bool = False,
 ) -> PilcoTrajectory:
-    """The predicted ``N(μ_t, Σ_t)`` and ``E[c(x_t)]``, ``Var[c(x_t)]`` for ``t = 0..H``."""
+    """The predicted ``N(μ_t, Σ_t)`` and ``E[c(x_t)]``, ``Var[c(x_t)]`` for ``t = 0..H``
+    (``policy_noise`` as in :func:`objective`)."""
     require_float64("pipps.pilco.trajectory")
     mean0, cov0 = _start(task, init)
     _, (means, covs, c_mean, c_var) = _scan_steps(
-        task, policy, model, (mean0, cov0), horizon, model_uncertainty, False, True
+        task, policy, model, (mean0, cov0), horizon, model_uncertainty, False, True, policy_noise
     )
     c0_mean, c0_var = task.cost.expected(mean0, cov0)
     return PilcoTrajectory(
