@@ -1,0 +1,180 @@
+"""Checks before any work: will an experiment fit in memory, and can its noise be represented?
+
+:func:`memory_bytes` estimates the largest arrays an experiment holds at once: one policy
+evaluation's program (particles × steps × the Jacobians kept for the backward sweep, particles ×
+the GP's size per output, the P × P batch importance weights of the likelihood-ratio estimators),
+PILCO's moment-matching program (E² · M² per step, rematerialised), the GP training's M × M
+matrices per output and the evaluation rollouts. The per-element counts were read off XLA's
+buffer assignment of the compiled programs (``benchmarks/estimator_memory.py``, on the cart-pole
+shapes, within 30 % there); they are scaled to other shapes by the dimensions they hold.
+:func:`check_memory` refuses a configuration whose estimate exceeds the machine's memory, before
+anything is compiled (``--particles 10000000000`` used to abort in C++ after trial 0).
+
+:func:`noise_limit` is the largest noise multiplier ``k`` whose observations stay representable
+where they go: the GP trains on them, squaring differences and summing over the data
+(:func:`pipps.gp.make_data` refuses data beyond ``sqrt(max / 4N)``), so an observation-noise
+standard deviation ``√k·σ`` whose 10-σ draws reach that bound fails the experiment at its first
+model, after the random trial has run. :func:`check_noise` refuses it before.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from pipps.experiments.config import ConfigError, ExperimentConfig
+
+BYTES = 8  # float64
+
+#: float64 elements per unit, read off XLA's buffer assignment on the cart-pole shapes
+#: (benchmarks/estimator_memory.py: D = 4, Dz = 5, E = 4, the 50-centre RBF policy)
+PER_PARTICLE_STEP = 3.1  # × D·Dz per particle and horizon step (61 at D·Dz = 20)
+PER_PARTICLE_OUTPUT_POINT = 1.8  # per particle, GP output and GP point (kernel rows kept for the backward sweep)
+PER_PARTICLE_PAIR = 0.3  # per pair of particles (batch importance weights; likelihood-ratio estimators)
+PER_PARTICLE_FEATURE = 9.0  # × centres·policy inputs per particle (1,800 at 50 × 4)
+PER_MODEL_ENTRY = 0.4  # per E·M² (the GP's matrices)
+PILCO_PER_PAIR_ENTRY = 1.4  # per E²·M² (PILCO's moment matching, rematerialised per step)
+GP_TRAINING_PER_ENTRY = 6.0  # per E·M² (Gram matrix, Cholesky factor, gradients per output)
+
+#: the fraction of the machine's memory an experiment may plan for
+MEMORY_FRACTION = 0.9
+
+
+def machine_memory() -> int | None:
+    """Bytes this process may use: the smaller of physical memory and a cgroup limit (None if unknown)."""
+    found = []
+    try:
+        found.append(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        pass
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = open(path).read().strip()
+        except OSError:
+            continue
+        if text.isdigit() and int(text) < 1 << 60:
+            found.append(int(text))
+    return min(found) if found else None
+
+
+def evaluation_bytes(estimator: str | None, particles: int, horizon: int, size: int, *, state_dim: int,
+                     input_dim: int, outputs: int, features: int = 200) -> float:
+    """Bytes of one policy evaluation's program: a particle estimator (``estimator`` its name:
+    ``rp`` has no likelihood-ratio part) or, with ``estimator=None``, PILCO's moment matching.
+    ``size``: the GP's points or inducing inputs; ``features``: policy centres × policy inputs."""
+    P, T, M, E = float(particles), float(horizon), float(size), float(outputs)
+    if estimator is None:
+        return BYTES * (PILCO_PER_PAIR_ENTRY * E * E * M * M + PER_MODEL_ENTRY * E * M * M)
+    elements = (PER_PARTICLE_STEP * state_dim * input_dim * P * T + PER_PARTICLE_OUTPUT_POINT * P * E * M
+                + PER_PARTICLE_FEATURE * features * P + PER_MODEL_ENTRY * E * M * M)
+    if estimator != "rp":
+        elements += PER_PARTICLE_PAIR * P * P
+    return BYTES * elements
+
+
+def memory_bytes(cfg: ExperimentConfig, seeds: int = 1) -> tuple[float, str]:
+    """The estimated peak bytes of ``cfg`` (``seeds`` of them batched together), and what dominates."""
+    from pipps.experiments.state import make_experiment_task
+
+    task = make_experiment_task(cfg)
+    problem = task.problem
+    T = int(cfg.horizon or problem.horizon)
+    E, D, Dz = problem.model_dim, problem.model_dim, problem.gp_input_dim
+    points = cfg.num_trials * T  # the most data the GP can hold
+    size = cfg.num_inducing if points > cfg.fitc_threshold else points
+    full = min(points, cfg.fitc_threshold)  # the largest full GP trained
+    features = (cfg.num_basis if cfg.policy != "linear" else 1) * problem.policy_input_dim
+    if cfg.is_pilco:
+        search, what = evaluation_bytes(None, 0, T, size, state_dim=D, input_dim=Dz, outputs=E), \
+            f"PILCO's moment matching at M = {size}"
+    else:
+        est = cfg.method_spec.estimator
+        search = evaluation_bytes(est, cfg.num_particles, T, size, state_dim=D, input_dim=Dz, outputs=E,
+                                  features=features)
+        what = f"{cfg.num_particles:,} particles × {T} steps at M = {size}" + (
+            "" if est == "rp" else f", {cfg.num_particles:,}² importance weights")
+    gp = BYTES * GP_TRAINING_PER_ENTRY * E * max(full, size) ** 2
+    rollouts = BYTES * 4.0 * cfg.eval_rollouts * (T + 1) * task.simulator.sim_dim
+    parts = {what: search, f"GP training on {max(full, size)} points": gp,
+             f"{cfg.eval_rollouts} evaluation rollouts": rollouts}
+    top = max(parts, key=parts.get)
+    return seeds * float(sum(parts.values())), top
+
+
+def gib(n: float) -> str:
+    return f"{n / 2**30:.3g} GiB" if n < 2**50 else f"{n:.2g} bytes"
+
+
+def check_memory(cfg: ExperimentConfig, *, seeds: int = 1, processes: int = 1, option: str = "--particles",
+                 available: int | None = None) -> float:
+    """Raise :class:`ConfigError` when ``processes`` experiments (each ``seeds`` batched) would need
+    more than :data:`MEMORY_FRACTION` of the machine's memory; return the estimate (bytes, one process)."""
+    need, what = memory_bytes(cfg, seeds)
+    available = machine_memory() if available is None else available
+    if available is not None and processes * need > MEMORY_FRACTION * available:
+        many = f"{processes} experiments at once × " if processes > 1 else ""
+        raise ConfigError(f"{option}: the experiment needs about {many}{gib(need)} for its largest arrays "
+                          f"({what}), more than this machine's {gib(available)}; use fewer particles or a smaller "
+                          "GP (--set num_inducing=…, fitc_threshold=…)")
+    return need
+
+
+def noise_limit(task: str, preset: str, data_points: int) -> float:
+    """The largest noise multiplier k whose observation noise stays representable (module doc)."""
+    from pipps.tasks.presets import make_task
+
+    base = float(np.max(make_task(task, preset=preset, k=1.0).simulator.obs_noise_std))
+    bound = math.sqrt(np.finfo(np.float64).max / (4.0 * max(data_points, 1)))
+    return (bound / (10.0 * base)) ** 2
+
+
+def check_noise(task: str, preset: str, k: float, data_points: int, option: str = "--k") -> None:
+    """Raise :class:`ConfigError` when ``k``'s observation-noise standard deviation is not finite or
+    overflows the arithmetic the observations go through (:func:`noise_limit`)."""
+    if not (isinstance(k, (int, float)) and math.isfinite(k) and k >= 0):
+        raise ConfigError(f"{option}: the noise multiplier must be a finite number >= 0, got {k!r}")
+    limit = noise_limit(task, preset, data_points)
+    if k > limit:
+        from pipps.tasks.presets import make_task
+
+        base = float(np.max(make_task(task, preset=preset, k=1.0).simulator.obs_noise_std))
+        raise ConfigError(f"{option} {k:g}: the observation noise's standard deviation √k·σ reaches "
+                          f"{math.sqrt(k) * base:.3g}, and observations that large overflow float64 when squared "
+                          f"and summed over {data_points} data points; k must stay below {limit:.3g}")
+
+
+def check_experiment(cfg: ExperimentConfig, *, seeds: int = 1, processes: int = 1, particles: str = "--particles",
+                     k: str = "--k") -> float:
+    """Both checks for one configuration, naming the options ``particles`` and ``k`` when they fail;
+    returns the memory estimate (bytes)."""
+    from pipps.experiments.state import make_experiment_task
+
+    horizon = int(cfg.horizon or make_experiment_task(cfg).problem.horizon)
+    check_noise(cfg.task, cfg.preset, cfg.k, cfg.num_trials * horizon, option=k)
+    option = particles if not cfg.is_pilco else "--set num_inducing/fitc_threshold"
+    return check_memory(cfg, seeds=seeds, processes=processes, option=option)
+
+
+def check_study(cfg: ExperimentConfig, size: int, particles: int, estimators, *, option: str = "--particles",
+                available: int | None = None) -> float:
+    """The memory check for a gradient study on a snapshot of ``cfg`` whose GP has ``size`` points (or
+    inducing inputs): one evaluation of the most demanding of ``estimators`` (names, ``NAME:SETTING=…``
+    allowed) at ``particles``. Raises :class:`ConfigError` naming ``option``; returns the estimate."""
+    from pipps.experiments.state import make_experiment_task
+
+    problem = make_experiment_task(cfg).problem
+    T = int(cfg.horizon or problem.horizon)
+    features = (cfg.num_basis if cfg.policy != "linear" else 1) * problem.policy_input_dim
+    kinds = {str(e).split(":")[0] for e in estimators}
+    est = "rp" if kinds <= {"rp"} else "lr"
+    need = evaluation_bytes(est, particles, T, size, state_dim=problem.model_dim, input_dim=problem.gp_input_dim,
+                            outputs=problem.model_dim, features=features)
+    available = machine_memory() if available is None else available
+    if available is not None and need > MEMORY_FRACTION * available:
+        raise ConfigError(f"{option}: one estimate at P = {particles:,} needs about {gib(need)} "
+                          f"({particles:,} particles × {T} steps at M = {size}"
+                          + ("" if est == "rp" else f", {particles:,}² importance weights")
+                          + f"), more than this machine's {gib(available)}; use fewer particles")
+    return need
