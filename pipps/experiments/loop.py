@@ -22,7 +22,9 @@ programs compile once per capacity, not once per trial.
 
 **Failures.** A seed whose optimised policy is not finite fails alone (its result says so; an
 unbatched run raises the error); any other error fails every seed still running and is raised,
-after ``on_trial`` saw them marked ``failed`` with everything they finished.
+after ``on_trial`` saw them marked ``failed`` with everything they finished. A
+``KeyboardInterrupt`` (Ctrl-C, or the SIGINT a sweep sends its workers) marks them
+``interrupted`` instead: nothing went wrong, and they resume from their last finished trial.
 
 **Resuming.** ``resume`` continues an experiment from the trials a partial result holds (a killed
 or failed run's file): :func:`~pipps.experiments.state.restore` rebuilds the state those trials
@@ -142,7 +144,7 @@ def run_experiment(
 ) -> ExperimentResult:
     """Run one experiment: :func:`run_seeds` with one seed on :data:`ONE_SEED`. Raises what fails
     (a non-finite policy included), after ``on_trial`` saw every finished trial and the result has
-    ``status="failed"`` and the error message.
+    ``status="failed"`` (``"interrupted"`` for a ``KeyboardInterrupt``) and the error message.
 
     ``resume``: a partial result of this same configuration (its trials 0..n−1); the run continues
     at trial n and returns the whole experiment."""
@@ -202,7 +204,10 @@ def run_seeds(
             r.wall_seconds = wall_before[s] + wall
 
     def fail(s, err):
-        results[s].status, results[s].error = "failed", f"{type(err).__name__}: {err}"
+        # Ctrl-C (a sweep's workers get SIGINT from it too) stops a run that resumes as it was: "interrupted"
+        stopped = isinstance(err, KeyboardInterrupt)
+        results[s].status = "interrupted" if stopped else "failed"
+        results[s].error = f"{type(err).__name__}: {err}"
         errors[s] = err
 
     try:

@@ -190,7 +190,7 @@ def required_fields(cls: type) -> set[str]:
 class ExperimentResult:
     config: ExperimentConfig
     trials: list[TrialResult]
-    status: str = "running"  # running | complete | failed
+    status: str = "running"  # running | complete | failed | interrupted (Ctrl-C: resumable as it stands)
     error: str = ""
     wall_seconds: float = 0.0  # summed over the sessions that ran it (see resumed_at)
     resumed_at: list[int] = dataclasses.field(default_factory=list)  # trial indices a resumed session began at

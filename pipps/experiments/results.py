@@ -2,7 +2,7 @@
 
 The schema (version :data:`SCHEMA_VERSION`) is documented in docs/results-schema.md. In short::
 
-    /                      attrs: schema_version, status (running|complete|failed), error,
+    /                      attrs: schema_version, status (running|complete|failed|interrupted), error,
                                   config_json, checksum, wall_seconds, num_trials_done,
                                   final_return, success
     /config                attrs: every ExperimentConfig field (None stored as "__none__")
@@ -243,6 +243,9 @@ def check_result(path: str | os.PathLike) -> str:
     """
     path = Path(path)
     status, cfg, n = verify_result(path)
+    if status == "interrupted" or status.startswith("failed: KeyboardInterrupt"):  # older files said failed
+        raise ResultError(f"{path}: interrupted after {n} of {cfg.num_trials} trials, resumable (pipps run --resume "
+                          f"--out {path}, or the sweep that made it)")
     if status != "complete":
         raise ResultError(f"{path}: status is {status.split(':')[0]!r} (not complete)"
                           + (status[len("failed"):] if status.startswith("failed") else ""))

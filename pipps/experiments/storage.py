@@ -17,17 +17,22 @@ to that configuration. This module keeps the two honest:
   an unfinished result of the same experiment, another experiment, or a damaged file.
 * :func:`claim_sweep_folder` writes or checks the folder's manifest ``.pipps-sweep.json`` (the
   experiment preset and the settings that depart from it), so one folder holds one protocol.
+* :func:`check_new_file` and :func:`publish` guard every other output (a study, a bench, a
+  recording, a PNG): an existing file is replaced only with ``--overwrite``, an experiment result
+  never (:func:`is_experiment_result`), and the new file is written beside its target and moved
+  into place whole.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import json
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from pipps.experiments.config import ExperimentConfig, config_difference, departures, same_experiment
 
@@ -92,6 +97,82 @@ def check_output_folder(path: str | os.PathLike, *, create: bool = True) -> Path
     path = Path(path)
     _make_folder(path, create)
     return path
+
+
+def is_experiment_result(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is an HDF5 file that holds an experiment result (a ``config_json`` at its
+    root), intact or not; a study, a bench, a recording or anything else is not."""
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        return False
+    try:
+        with h5py.File(path, "r") as f:
+            return "config_json" in f.attrs or ("trials" in f and "schema_version" in f.attrs)
+    except Exception:  # not HDF5, or unreadable: not a result this library wrote
+        return False
+
+
+def check_new_file(path: str | os.PathLike, *, overwrite: bool, option: str, suffix: str | None = None,
+                   inputs: tuple = (), command: str = "pipps") -> Path:
+    """``path`` as a new output of ``command`` (given as ``option``), checked before any work.
+
+    Refused, with :class:`OutputError` naming the file and the option: a folder; a name without
+    ``suffix``; one of the ``inputs`` the command reads; an experiment result, even with
+    ``overwrite`` (no command but ``pipps run --overwrite`` replaces one); any other existing file
+    unless ``overwrite``. The folder is made and probed as for a result (:func:`check_output_file`).
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise OutputError(f"{option} {path}: is a folder; give a file name")
+    if suffix is not None and path.suffix != suffix:
+        raise OutputError(f"{option} {path}: the name must end in {suffix}")
+    if path.exists():
+        same = [p for p in inputs if Path(p).exists() and os.path.samefile(p, path)]
+        if same:
+            raise OutputError(f"{option} {path}: is a file this command reads; pick another {option}")
+        if is_experiment_result(path):
+            raise OutputError(f"{path} is an experiment result; {command} never writes over one, not even with "
+                              f"--overwrite: pick another {option} (or move the result away yourself)")
+        if not overwrite:
+            raise OutputError(f"{path} exists; {command} replaces it only with --overwrite, or pick another {option}")
+    _make_folder(path.parent if str(path.parent) else Path("."), True)
+    return path
+
+
+@contextlib.contextmanager
+def publish(path: str | os.PathLike, *, overwrite: bool, command: str = "pipps") -> Iterator[Path]:
+    """Yield a temporary name beside ``path`` (same suffix) to write the new file to; when the block
+    ends without an error it becomes ``path`` in one step: renamed over an existing file only with
+    ``overwrite`` (never over an experiment result that appeared meanwhile), else linked into place,
+    so a file that appeared since :func:`check_new_file` is not replaced. On an error the temporary
+    file is removed."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+    try:
+        yield tmp
+        if not tmp.exists():
+            raise OutputError(f"{path}: nothing was written")
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        if is_experiment_result(path):
+            raise OutputError(f"{path} became an experiment result meanwhile; {command} leaves it alone")
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            try:
+                os.link(tmp, path)
+            except FileExistsError:
+                raise OutputError(f"{path} appeared while {command} ran; it is left alone (--overwrite "
+                                  "replaces it)") from None
+            except OSError:  # a filesystem without hard links: check, then rename
+                if path.exists():
+                    raise OutputError(f"{path} appeared while {command} ran; it is left alone (--overwrite "
+                                      "replaces it)") from None
+                os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 # -- one writer per result ---------------------------------------------------------------------------
@@ -186,6 +267,24 @@ class Existing:
     kind: str
     trials: int = 0
     detail: str = ""
+    status: str = ""  # the file's status (running, complete, failed, interrupted) where it reads
+
+    @property
+    def interrupted(self) -> bool:
+        """Stopped by Ctrl-C: ``interrupted``, or a file written before that status existed, which
+        recorded the stop as ``failed`` with a ``KeyboardInterrupt``."""
+        return self.status == "interrupted" or (self.status == "failed" and self.detail.startswith("KeyboardInterrupt"))
+
+    def describe(self, total: int) -> str:
+        """What an unfinished file holds, for a sweep's plan: ``trials 0-3 of 0-15 kept (interrupted, resumable)``."""
+        kept = f"trials 0-{self.trials - 1} of 0-{total - 1} kept" if self.trials else "no trial kept"
+        if self.interrupted:
+            return f"{kept} (interrupted, resumable)"
+        if self.status == "failed":
+            return f"{kept} (failed: {self.detail.splitlines()[0] if self.detail else 'no message'}; resumable)"
+        if self.status == "running":
+            return f"{kept} (stopped while running, or running elsewhere; resumable)"
+        return kept
 
 
 def existing_result(path: str | os.PathLike, cfg: ExperimentConfig) -> Existing:
@@ -201,11 +300,12 @@ def existing_result(path: str | os.PathLike, cfg: ExperimentConfig) -> Existing:
         if "schema version" in text or "lock" in text.lower():  # newer pipps, or held open elsewhere: not damage
             return Existing("unreadable", detail=text)
         return Existing("damaged", detail=text)
+    word, _, error = status.partition(": ")
     if not same_experiment(stored, cfg):
-        return Existing("other", n, config_difference(stored, cfg))
+        return Existing("other", n, config_difference(stored, cfg), word)
     if status == "complete" and n == cfg.num_trials:
-        return Existing("complete", n)
-    return Existing("unfinished", n)
+        return Existing("complete", n, status=word)
+    return Existing("unfinished", n, error, word)
 
 
 def set_aside(path: str | os.PathLike) -> Path:

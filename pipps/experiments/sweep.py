@@ -23,6 +23,15 @@ docs/performance.md), and when fewer experiments remain than CPUs, each worker g
 share of them, so a lone experiment runs on every core it is given. (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false`` does not do this on
 jaxlib 0.10: a process with it still ran two threads, measured in docs/performance.md.)
 
+**Progress and Ctrl-C.** ``on_trial`` hears, from every worker, the start and the end of each
+trial (its path, the worker's CPUs, the trial's seconds), so a caller can print progress after
+every trial rather than every experiment. A ``KeyboardInterrupt`` in the sweep's process (Ctrl-C,
+or SIGINT sent to it alone) stops the sweep within seconds: queued experiments are cancelled, each
+worker gets SIGINT, writes its file as ``interrupted`` with every finished trial and starts nothing
+new; a worker still busy after :data:`STOP_GRACE` seconds (inside one long compiled call) is killed,
+its file keeping the trials it had finished (status ``running``), its lock released by the kernel.
+The interrupt is then raised again for the caller to report what was kept.
+
 ``backend="ray"`` runs the same plan on a Ray cluster (``address``; without one, ``ray.init()``
 finds a running local cluster or starts a local instance, shut down again at the end): each
 experiment is one Ray task with ``num_cpus=1`` that calls the same :func:`_run_one`, so the task
@@ -39,6 +48,8 @@ import dataclasses
 import multiprocessing as mp
 import os
 import pkgutil
+import queue as queues
+import signal
 import sys
 import tempfile
 import time
@@ -87,10 +98,46 @@ def cpu_layout(jobs: int | None, experiments: int, cpus: int) -> tuple[int, int]
     return workers, max(1, cpus // workers)
 
 
-def worker_pool(jobs: int, width: int = 1) -> cf.ProcessPoolExecutor:
-    """``jobs`` spawn workers, each pinned to ``width`` CPUs no other pinned pipps process holds."""
+def worker_pool(jobs: int, width: int = 1, events=None) -> cf.ProcessPoolExecutor:
+    """``jobs`` spawn workers, each pinned to ``width`` CPUs no other pinned pipps process holds;
+    ``events``: a queue (of the spawn context) the workers put their progress on."""
     return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                                  initializer=_start_worker, initargs=(width,))
+                                  initializer=_start_worker, initargs=(width, events))
+
+
+#: seconds a stopping sweep waits for its workers to write their files before it kills them
+STOP_GRACE = 5.0
+
+_events = None  # a worker's queue to the sweep's process (set by _start_worker)
+_stopping = False  # a worker that got SIGINT: finish writing, start nothing new
+_busy = False  # a worker is running an experiment (SIGINT interrupts it; an idle one just stops)
+_in_worker = False  # this process is a sweep's pool worker
+
+
+def _on_sigint(signum, frame):
+    """A sweep worker's SIGINT: stop the experiment it runs (its file is written as interrupted), once;
+    later ones are ignored so that the file is written whole."""
+    global _stopping
+    _stopping = True
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if _busy:
+        raise KeyboardInterrupt
+
+
+def _progress(path: str, report):
+    """A run_experiment progress callback passing each trial's start and end to ``report`` (in the
+    sweep's process) or to the worker's event queue; None when there is nobody to tell."""
+    sink = report if report is not None else (_events.put if _events is not None else None)
+    if sink is None:
+        return None
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+
+    def progress(event):
+        if event["phase"] in ("trial", "evaluated"):
+            sink({**{k: v for k, v in event.items() if isinstance(v, (int, float, str))}, "path": path,
+                  "pid": os.getpid(), "cpus": cpus})
+
+    return progress
 
 
 @dataclasses.dataclass
@@ -122,19 +169,24 @@ def release_compiled() -> None:
     gc.collect()
 
 
-def _run_one(cfg: ExperimentConfig, path: str, quiet: bool = True) -> tuple[str, str, str]:
+def _run_one(cfg: ExperimentConfig, path: str, quiet: bool = True, report=None) -> tuple[str, str, str]:
     """Worker: run (or resume) one experiment, writing its file after every trial.
 
     Everything is decided under the file's :class:`~pipps.experiments.storage.ResultLock`: a file
     another process is writing is left to it, one that became complete meanwhile is skipped, an
     unfinished one of this experiment is resumed, a damaged one is set aside (renamed, not
     overwritten). Returns ``(path, outcome, message)`` with outcome ``ran``, ``skipped`` or ``failed``.
+    ``report`` hears each trial's start and end (:func:`_progress`).
     """
     from pipps.experiments.loop import run_experiment
     from pipps.experiments.results import read_result, write_result
     from pipps.experiments.storage import ResultBusy, ResultLock, existing_result, set_aside
 
+    global _busy
+    if _stopping:
+        return path, "skipped", "the sweep is stopping"
     try:
+        _busy = True
         with ResultLock(path):
             found = existing_result(path, cfg)
             if found.kind == "complete":
@@ -147,13 +199,19 @@ def _run_one(cfg: ExperimentConfig, path: str, quiet: bool = True) -> tuple[str,
             if found.kind == "damaged":
                 note = f"set aside a damaged file as {set_aside(path).name}"
             resume = read_result(path, verify=False) if found.kind == "unfinished" and found.trials else None
-            run_experiment(cfg, resume=resume, on_trial=lambda result: write_result(path, result))
+            run_experiment(cfg, resume=resume, on_trial=lambda result: write_result(path, result),
+                           progress=_progress(path, report))
             return path, "ran", note
     except ResultBusy as err:
         return path, "skipped", f"running in another process ({err})"
+    except KeyboardInterrupt:
+        if not _in_worker:  # in the sweep's own process: stop the sweep
+            raise
+        return path, "interrupted", "stopped by SIGINT; the file keeps every finished trial"
     except Exception as err:  # the file already records the failure
         return path, "failed", f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=3) if not quiet else ''}"
     finally:
+        _busy = False
         release_compiled()
 
 
@@ -163,10 +221,24 @@ def plan(
     """Split the grid into (to run or resume, already complete, the trial each of the first
     resumes at: 0 from scratch). Raises ValueError when a file in ``out_dir`` holds another
     configuration than the one the grid maps to it."""
+    todo, done, starts = [], [], []
+    for cfg, path, found in survey(configs, out_dir):
+        if found.kind == "complete":
+            done.append(path)
+        else:  # missing or damaged (set aside when run): from scratch; unfinished: resumed
+            todo.append((cfg, path))
+            starts.append(found.trials if found.kind == "unfinished" else 0)
+    return todo, done, starts
+
+
+def survey(configs: Iterable[ExperimentConfig], out_dir: str | os.PathLike) -> list:
+    """Every configuration with its file in ``out_dir`` and what the file holds
+    (:class:`~pipps.experiments.storage.Existing`: its kind, finished trials and status, e.g. an
+    interrupted run). Raises like :func:`plan`."""
     from pipps.experiments.storage import OutputError, existing_result
 
     out = Path(out_dir)
-    todo, done, starts, seen = [], [], [], set()
+    rows, seen = [], set()
     for cfg in configs:
         path = out / f"{experiment_name(cfg)}.h5"
         if path in seen:
@@ -178,12 +250,8 @@ def plan(
                               "use another output folder, or remove the file to run this one")
         if found.kind == "unreadable":
             raise OutputError(f"{path} cannot be read now ({found.detail}); it is left untouched")
-        if found.kind == "complete":
-            done.append(path)
-        else:  # missing or damaged (set aside when run): from scratch; unfinished: resumed
-            todo.append((cfg, path))
-            starts.append(found.trials if found.kind == "unfinished" else 0)
-    return todo, done, starts
+        rows.append((cfg, path, found))
+    return rows
 
 
 BACKENDS = ("local", "ray")
@@ -199,10 +267,14 @@ def run_sweep(
     address: str | None = None,
     batched: bool = False,
     batching: str = "auto",
+    on_trial: Callable[[dict], None] | None = None,
 ) -> SweepReport:
     """Run every configuration whose result is not already complete; see the module docstring.
 
-    ``on_done(path, error, finished, total)`` is called as each experiment ends. ``backend``:
+    ``on_done(path, error, finished, total)`` is called as each experiment ends, ``on_trial(event)``
+    as each trial starts (``phase="trial"``) and ends (``phase="evaluated"``, with its ``seconds``),
+    with the experiment's ``path`` and the worker's ``pid`` and ``cpus`` (local backend, not
+    batched). A ``KeyboardInterrupt`` stops the workers (module doc) and is raised again. ``backend``:
     ``"local"`` (``jobs`` worker processes) or ``"ray"`` (at most ``jobs`` Ray tasks in flight on
     the cluster at ``address``; a Ray session this process already has is used as it is).
 
@@ -236,6 +308,8 @@ def run_sweep(
             skipped.append(path)
             notes[path] = message
             return
+        if outcome == "interrupted":  # a Ray task's worker got SIGINT: not complete, resumable
+            outcome, message = "failed", f"interrupted: {message}"
         if outcome == "failed":
             failed[path] = message
         else:
@@ -254,13 +328,85 @@ def run_sweep(
         workers, width = cpu_layout(jobs, len(todo), available_cpus())
         if workers == 1:  # in this process, on every CPU it may use
             for cfg, path in todo:
-                record(*_run_one(cfg, str(path)))
+                record(*_run_one(cfg, str(path), report=on_trial))
         else:
-            with worker_pool(workers, width) as pool:
-                futures = [pool.submit(_run_one, cfg, str(path)) for cfg, path in todo]
-                for fut in cf.as_completed(futures):
-                    record(*fut.result())
+            _run_pool(todo, workers, width, record, on_trial, out_dir)
     return SweepReport(ran, skipped, failed, time.perf_counter() - start, notes)
+
+
+def _run_pool(todo, workers: int, width: int, record, on_trial, out_dir) -> None:
+    """Run ``todo`` on pinned worker processes, passing their trial events to ``on_trial``; on a
+    ``KeyboardInterrupt`` stop them (:func:`_stop_workers`) and raise it again."""
+    ctx = mp.get_context("spawn")
+    events = ctx.Queue() if on_trial is not None else None
+    pool = worker_pool(workers, width, events)
+    futures = [pool.submit(_run_one, cfg, str(path)) for cfg, path in todo]
+    pending = set(futures)
+    try:
+        while pending:
+            finished, pending = cf.wait(pending, timeout=0.5, return_when=cf.FIRST_COMPLETED)
+            _drain(events, on_trial)
+            for fut in finished:
+                record(*fut.result())
+        _drain(events, on_trial)
+    except KeyboardInterrupt:
+        _stop_workers(pool, futures, [str(p) for _, p in todo], out_dir)
+        raise
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _drain(events, on_trial) -> None:
+    while events is not None:
+        try:
+            event = events.get_nowait()
+        except queues.Empty:
+            return
+        on_trial(event)
+
+
+def _stop_workers(pool: cf.ProcessPoolExecutor, futures, paths: list[str], out_dir,
+                  grace: float | None = None) -> list[int]:
+    """Stop a sweep's workers within ``grace`` seconds (:data:`STOP_GRACE`): cancel what has not
+    started, SIGINT every worker (it writes its file as interrupted and starts nothing new), wait
+    for the running experiments to end, then kill whatever is left, remove the temporary files of
+    the killed and the lock files nobody holds. Returns the pids it had to kill."""
+    from pipps.experiments.storage import ResultBusy, ResultLock
+
+    grace = STOP_GRACE if grace is None else grace
+    for fut in futures:
+        fut.cancel()
+    procs = list(getattr(pool, "_processes", {}).values())
+    for p in procs:
+        try:
+            os.kill(p.pid, signal.SIGINT)
+        except (ProcessLookupError, TypeError):
+            pass
+    cf.wait([f for f in futures if not f.cancelled()], timeout=grace)
+    pool.shutdown(wait=False, cancel_futures=True)
+    deadline = time.monotonic() + 2.0
+    for p in procs:
+        p.join(max(0.0, deadline - time.monotonic()))
+    killed = []
+    for p in procs:
+        if p.is_alive():
+            killed.append(p.pid)
+            p.kill()
+            p.join(5.0)
+    for pid in killed:  # a write cut short leaves its temporary file; the target is intact (atomic writes)
+        for tmp in Path(out_dir).glob(f".*.tmp-{pid}"):
+            tmp.unlink(missing_ok=True)
+    for path in paths:  # the kernel released a killed holder's lock; take it once to remove the file
+        try:
+            with ResultLock(path):
+                pass
+        except ResultBusy:  # another sweep's process is writing it
+            pass
+        except OSError:
+            pass
+    return killed
 
 
 def _run_batches(todo, batching: str, record) -> list:
@@ -399,10 +545,14 @@ def _pin_to_free_cpus(width: int = 1) -> set[int] | None:
     return chosen
 
 
-def _start_worker(width: int = 1) -> None:
-    """A sweep worker's set-up, before JAX runs: pin to ``width`` free CPUs, switch on float64."""
+def _start_worker(width: int = 1, events=None) -> None:
+    """A sweep worker's set-up, before JAX runs: pin to ``width`` free CPUs, switch on float64,
+    keep the queue its progress goes to, and take SIGINT as "stop after writing" (:func:`_on_sigint`)."""
     from pipps.precision import enable_float64
 
+    global _events, _in_worker
+    _events, _in_worker = events, True
+    signal.signal(signal.SIGINT, _on_sigint)
     _pin_to_free_cpus(width)
     enable_float64()
 
