@@ -22,6 +22,8 @@ import argparse
 import dataclasses
 import sys
 
+from pipps import cli_options as opt
+
 
 def _int_at_least(lowest: int):
     """An argparse type: an integer >= ``lowest``."""
@@ -123,14 +125,17 @@ def _add_experiment_options(p: argparse.ArgumentParser, *, single: bool) -> None
     from pipps.experiments.config import PRESET_NAMES, TASKS
     from pipps.experiments.methods import METHODS
 
-    p.add_argument("--preset", default="thesis", choices=PRESET_NAMES,
-                   help="thesis (the thesis protocol), pilco (PILCO's task defaults) or quick (a few minutes on a CPU)")
+    # run: None means "not given" (the defaults are filled in by _run_config; --resume keeps the file's)
+    p.add_argument("--preset", default=None if single else "thesis", choices=PRESET_NAMES,
+                   help="thesis (the thesis protocol; default), pilco (PILCO's task defaults) or quick (a few "
+                        "minutes on a CPU)")
     if single:
-        p.add_argument("--task", default="cartpole_swingup", choices=TASKS)
-        p.add_argument("--method", default="tp", choices=list(METHODS))
+        p.add_argument("--task", default=None, choices=TASKS, help="default cartpole_swingup")
+        p.add_argument("--method", default=None, choices=list(METHODS), help="default tp")
         p.add_argument("--cost", default=None, help="angle | tip (cart-pole), unicycle; default: the task preset's")
-        p.add_argument("--k", type=_nonnegative_float, default=1.0, help="observation-noise variance multiplier")
-        p.add_argument("--seed", type=_nonnegative_int, default=0)
+        p.add_argument("--k", type=_nonnegative_float, default=None,
+                       help="observation-noise variance multiplier (default 1)")
+        p.add_argument("--seed", type=_nonnegative_int, default=None, help="default 0")
         p.add_argument("--particles", type=_positive_int, default=None, help="P (default: the preset's)")
     p.add_argument("--set", dest="settings", type=_setting, action="append", default=[], metavar="KEY=VALUE",
                    help="override any experiment setting (repeatable), e.g. --set policy_evals=300")
@@ -149,26 +154,31 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--preset", default="thesis", choices=["thesis", "pilco"])
     ro.add_argument("--k", type=_nonnegative_float, default=1.0, help="observation-noise variance multiplier")
     ro.add_argument("--policy", default="random-actions", choices=["random-actions", "random-policy"])
-    ro.add_argument("--episodes", type=_positive_int, default=3)
-    ro.add_argument("--seed", type=int, default=0)
+    ro.add_argument("--episodes", type=opt.int_at_least(1, 100_000), default=3)
+    ro.add_argument("--seed", type=_nonnegative_int, default=0)
 
     run = sub.add_parser("run", help="run one episodic learning experiment and write its HDF5 result")
     _add_experiment_options(run, single=True)
     run.add_argument("--out", default=None, help="result file (default: runs/<experiment name>.h5)")
     run.add_argument("--quiet", action="store_true", help="no progress display")
     run.add_argument("--resume", action="store_true",
-                     help="continue the unfinished result at --out (same configuration) from its last finished "
-                          "trial instead of starting over")
+                     help="continue the unfinished result at --out from its last finished trial, with the "
+                          "configuration the file stores (options given must agree with it)")
+    run.add_argument("--dry-run", action="store_true",
+                     help="print what would run and its estimated cost, and run nothing")
     run.add_argument("--overwrite", action="store_true",
                      help="replace the file at --out even if it holds a complete result or another experiment "
                           "(without it, an existing result is never replaced)")
 
     sw = sub.add_parser("sweep", help="run a table's cells over seeds in parallel workers (resumable)")
-    sw.add_argument("--table", required=True, help="4.1, 4.2, 4.3, 4.4, q001 (Q × 0.01 cell) or del")
+    sw.add_argument("--table", required=True, type=opt.one_of("table", opt.tables),
+                    help="4.1, 4.2, 4.3, 4.4, q001 (Q × 0.01 cell) or del")
     sw.add_argument("--seeds", type=_positive_int, default=20, help="seeds per cell (0..N-1)")
     sw.add_argument("--seed-start", type=_nonnegative_int, default=0)
-    sw.add_argument("--methods", default=None, help="comma-separated subset of the table's methods")
-    sw.add_argument("--k", dest="ks", default=None, help="comma-separated subset of the table's k values")
+    sw.add_argument("--methods", default=None, type=opt.names("methods", opt.methods),
+                    help="comma-separated subset of the table's methods")
+    sw.add_argument("--k", dest="ks", default=None, type=opt.float_list(0.0),
+                    help="comma-separated subset of the table's k values")
     sw.add_argument("--jobs", type=_jobs, default=None,
                     help="parallel worker processes (local; default auto: one per CPU, each pinned, and the CPUs "
                          "shared out when fewer experiments remain) or Ray tasks in flight (ray; default: all)")
@@ -185,15 +195,19 @@ def build_parser() -> argparse.ArgumentParser:
                          "still maps, batched CPU LAPACK deadlocks), map (seeds in sequence inside it), auto "
                          "(map on CPU, vmap on GPU)")
     sw.add_argument("--out", default="runs", help="result folder (one file per experiment)")
-    sw.add_argument("--dry-run", action="store_true", help="list what would run and what is already complete")
+    sw.add_argument("--dry-run", action="store_true",
+                    help="list what would run, what is already complete or interrupted, and the estimated cost")
     _add_experiment_options(sw, single=False)
 
     tb = sub.add_parser("table", help="success rates with 95%% Wilson intervals next to the thesis' tables")
     tb.add_argument("results", nargs="*", default=["runs"], help="result files or folders (default: runs)")
-    tb.add_argument("--table", default=None, help="one table (default: every table with results)")
-    tb.add_argument("--preset", default="thesis", choices=PRESET_NAMES,
-                    help="count the results of this experiment preset (default thesis); results of another "
-                         "preset, or whose settings depart from it, are listed as not counted")
+    tb.add_argument("--table", default=None, type=opt.one_of("table", opt.tables),
+                    help="one table (default: every table with results)")
+    tb.add_argument("--preset", default=None, choices=PRESET_NAMES,
+                    help="count the results of this experiment preset; results of another preset, or whose "
+                         "settings depart from it, are listed as not counted. Default: thesis, or, when no "
+                         "result is of the thesis preset and all are of one other preset, that one, labelled "
+                         "as not the thesis protocol")
     tb.add_argument("--custom", action="store_true",
                     help="also count results whose settings depart from the preset (each table names them)")
     tb.add_argument("--curves", action="store_true", help="also print every result's evaluated return per trial, and "
@@ -219,16 +233,21 @@ def build_parser() -> argparse.ArgumentParser:
                          "per trial of each table cell: median, quartiles, seeds), diagnostics (final-trial predictions, "
                          "k_LR and gradient variances per step); landscape, variance, bench (a study file's figure, "
                          "its default)")
-    pl.add_argument("--table", default=None, help="cells/curves: the table whose cells to draw (curves needs it when the "
-                                                   "results fill cells of more than one table)")
-    pl.add_argument("--preset", default="thesis", choices=PRESET_NAMES,
-                    help="cells/curves: count the results of this experiment preset, as pipps table does")
+    pl.add_argument("--table", default=None, type=opt.one_of("table", opt.tables),
+                    help="cells/curves: the table whose cells to draw (curves needs it when the results fill cells "
+                         "of more than one table)")
+    pl.add_argument("--preset", default=None, choices=PRESET_NAMES,
+                    help="cells/curves: count the results of this experiment preset, as pipps table does (default: "
+                         "as pipps table)")
     pl.add_argument("--custom", action="store_true",
                     help="cells/curves: also count results whose settings depart from the preset")
-    pl.add_argument("--out", default="pipps.rrd", help="recording to write")
-    pl.add_argument("--png", default=None, help="also render the recording to this PNG (needs xvfb-run)")
-    pl.add_argument("--size", default=None,
+    pl.add_argument("--out", default="pipps.rrd", type=opt.file_name(".rrd"), help="recording to write")
+    pl.add_argument("--png", default=None, type=opt.file_name(".png"),
+                    help="also render the recording to this PNG (needs xvfb-run, Mesa and the rerun viewer)")
+    pl.add_argument("--size", default=None, type=opt.window_size,
                     help="PNG window size WxH (default: the figure's own layout; 1600x1000 for the overview)")
+    pl.add_argument("--overwrite", action="store_true",
+                    help="replace existing --out/--png files (never an experiment result)")
 
     st = sub.add_parser("study", help="gradient studies on a policy snapshot from a result file (docs/gradients.md)")
     studies = st.add_subparsers(dest="study", required=True)
@@ -245,33 +264,43 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--choices", default="library", choices=["library", "thesis"],
                        help="library (unbiased) or the thesis' own baseline and k_LR")
         p.add_argument("--seed", type=_nonnegative_int, default=0)
-        p.add_argument("--out", default=None, help=f"HDF5 output (default: study_{name}.h5)")
-        p.add_argument("--rrd", default=None, help="rerun recording (default: the --out name with .rrd)")
+        p.add_argument("--out", default=None, type=opt.file_name(".h5"), help=f"HDF5 output (default: study_{name}.h5)")
+        p.add_argument("--rrd", default=None, type=opt.file_name(".rrd"),
+                       help="rerun recording (default: the --out name with .rrd)")
+        p.add_argument("--overwrite", action="store_true",
+                       help="replace existing --out/--rrd files (never an experiment result)")
         p.add_argument("--quick", action="store_true", help="a small version that runs in well under a minute")
         if name == "landscape":
             p.add_argument("--particles", type=_int_at_least(2), default=None, help="P (default 1000)")
-            p.add_argument("--deltas", default=None, help="START:STOP:NUM grid of Δ (default 0:1.5:16)")
+            p.add_argument("--deltas", default=None, type=opt.grid, help="START:STOP:NUM grid of Δ (default 0:1.5:16)")
         else:
-            p.add_argument("--particles", default=None, help="comma-separated P values (default 10,30,100,300,1000)")
-            p.add_argument("--deltas", default=None, help="comma-separated Δ values (default 0,1.5: smooth, chaotic)")
+            p.add_argument("--particles", default=None, type=opt.int_list(2),
+                           help="comma-separated P values (default 10,30,100,300,1000)")
+            p.add_argument("--deltas", default=None, type=opt.float_list(),
+                           help="comma-separated Δ values (default 0,1.5: smooth, chaotic)")
 
     bn = sub.add_parser("bench", help="run time against gradient error per estimator and P, and the Pareto table")
     bn.add_argument("result", help="a result file of a cart-pole run (the snapshot, as for pipps study)")
     bn.add_argument("--trial", type=_positive_int, default=None, help="learned trial (default: the last one the file can rebuild)")
     bn.add_argument("--estimators", default=None, help="comma-separated (default rp,lr,tp,gtp)")
-    bn.add_argument("--particles", default=None, help="comma-separated P values (default 30,100,300,1000)")
-    bn.add_argument("--deltas", default=None, help="comma-separated Δ values (default 0,1.5: smooth, chaotic)")
+    bn.add_argument("--particles", default=None, type=opt.int_list(2),
+                    help="comma-separated P values (default 30,100,300,1000)")
+    bn.add_argument("--deltas", default=None, type=opt.float_list(),
+                    help="comma-separated Δ values (default 0,1.5: smooth, chaotic)")
     bn.add_argument("--repeats", type=_int_at_least(2), default=None, help="estimates per entry for its MSE (default 20)")
     bn.add_argument("--reference-repeats", type=_int_at_least(2), default=None,
                     help="estimates averaged into the reference gradient (default 50)")
     bn.add_argument("--reference", default="tp", help="the unbiased estimator of the reference (at the largest P)")
-    bn.add_argument("--variance-tols", default="0", help="comma-separated GP variance tolerances: 0 is the exact "
+    bn.add_argument("--variance-tols", default=[0.0], type=opt.float_list(0.0), help="comma-separated GP variance tolerances: 0 is the exact "
                     "variance, T > 0 the certified low-rank form at T·σ² (docs/gp.md); each adds a series, with each "
                     "estimate's change from the exact-variance one (default 0)")
     bn.add_argument("--direction", default="pilco", choices=["pilco", "random"])
     bn.add_argument("--seed", type=_nonnegative_int, default=0)
-    bn.add_argument("--out", default="bench.h5", help="HDF5 output")
-    bn.add_argument("--rrd", default=None, help="rerun recording (default: the --out name with .rrd)")
+    bn.add_argument("--out", default="bench.h5", type=opt.file_name(".h5"), help="HDF5 output")
+    bn.add_argument("--rrd", default=None, type=opt.file_name(".rrd"),
+                    help="rerun recording (default: the --out name with .rrd)")
+    bn.add_argument("--overwrite", action="store_true",
+                    help="replace existing --out/--rrd files (never an experiment result)")
     bn.add_argument("--quick", action="store_true", help="a small version that runs in well under a minute")
     return parser
 
@@ -308,20 +337,92 @@ def _progress_printer(stream=None):
     return show
 
 
+#: what `pipps run` runs when an option is not given (and `--resume --out FILE` does not read it from FILE)
+RUN_DEFAULTS = {"preset": "thesis", "task": "cartpole_swingup", "method": "tp", "k": 1.0, "seed": 0}
+
+
+def _given(args) -> dict:
+    """The experiment settings given on the command line (options left out are not in it)."""
+    given = {name: getattr(args, name) for name in ("task", "method", "cost", "k", "seed")
+             if getattr(args, name) is not None}
+    if args.particles is not None:
+        given["num_particles"] = args.particles
+    given.update(_check_settings(args.settings, RUN_OWN_OPTIONS))
+    return given
+
+
+def _run_config(args):
+    """The configuration the options ask for, with :data:`RUN_DEFAULTS` where they are left out."""
+    from pipps.experiments.config import resolve_config
+
+    given = _given(args)
+    task = given.pop("task", RUN_DEFAULTS["task"])
+    overrides = {name: RUN_DEFAULTS[name] for name in ("method", "k", "seed")} | {"cost": None} | given
+    return resolve_config(args.preset or RUN_DEFAULTS["preset"], task, **overrides)
+
+
+def _resume_config(args, out):
+    """``--resume --out FILE``: the configuration FILE stores; every option given must agree with it."""
+    from pipps.experiments.config import config_difference, refuse_unused, same_experiment
+    from pipps.experiments.results import ResultError, verify_result
+
+    try:
+        _, stored, _ = verify_result(out)
+    except ResultError as err:
+        raise UsageError(f"--resume: nothing to continue at {out}: {err}") from None
+    given = _given(args)
+    refuse_unused(given.get("method", stored.method), given)
+    differ = []
+    if args.preset is not None and args.preset != stored.protocol:
+        differ.append(f"preset: {stored.protocol!r} stored, {args.preset!r} asked")
+    if given and not same_experiment(stored, stored.replace(**given)):
+        differ.append(config_difference(stored, stored.replace(**given)))
+    if differ:
+        raise UsageError(f"--resume: {out} stores another configuration than the options ask ({'; '.join(differ)}); "
+                         f"pipps run --resume --out {out} alone continues it as stored")
+    return stored
+
+
+def _plan_line(cfg, out) -> str:
+    return (f"{cfg.task} / {cfg.table_name} / k={cfg.k:g} / seed {cfg.seed} ({cfg.protocol} preset): "
+            f"{cfg.num_random} random + {cfg.num_learned} learned trials (trials 0-{cfg.num_trials - 1})"
+            + ("" if cfg.is_pilco else f", P={cfg.num_particles}, {cfg.policy_evals} policy evaluations per trial")
+            + f" -> {out}")
+
+
 def _cmd_run(args) -> int:
-    from pipps.experiments.config import experiment_name, resolve_config
+    from pipps.cli_report import run_estimate
+    from pipps.experiments.budget import gemm_gflops
+    from pipps.experiments.config import experiment_name
     from pipps.experiments.loop import run_experiment
+    from pipps.experiments.preflight import check_experiment
     from pipps.experiments.results import read_result, write_result
     from pipps.experiments.storage import ResultLock, check_output_file, existing_result
+    from pipps.experiments.sweep import available_cpus
 
     if args.resume and args.overwrite:
         raise UsageError("--resume and --overwrite contradict each other; give one")
-    overrides = dict(method=args.method, k=args.k, seed=args.seed, cost=args.cost)
-    if args.particles is not None:
-        overrides["num_particles"] = args.particles
-    overrides.update(_check_settings(args.settings, RUN_OWN_OPTIONS))
-    cfg = resolve_config(args.preset, args.task, **overrides)
-    out = check_output_file(args.out or f"runs/{experiment_name(cfg)}.h5")
+    if args.resume and args.out:
+        cfg = _resume_config(args, check_output_file(args.out, create=False))
+        out = args.out
+    else:
+        cfg = _run_config(args)
+        out = args.out or f"runs/{experiment_name(cfg)}.h5"
+    check_experiment(cfg)  # the noise it can represent, the memory it needs: before anything runs
+    out = check_output_file(out, create=not args.dry_run)
+    if args.dry_run:
+        found = existing_result(out, cfg)
+        done = found.trials if found.kind == "unfinished" else 0
+        there = {"missing": "no file yet", "complete": "a complete result of it (refused without --overwrite)",
+                 "other": f"another experiment ({found.detail}; refused without --overwrite)",
+                 "damaged": f"a damaged file ({found.detail}; refused without --overwrite)",
+                 "unreadable": f"a file it cannot read now ({found.detail})"}.get(found.kind)
+        if there is None:
+            there = found.describe(cfg.num_trials) + (f"; --resume continues at trial {done}" if done else "")
+        print(f"would run 1 experiment: {_plan_line(cfg, out)}")
+        print(f"  at {out}: {there}")
+        print(f"  {run_estimate(cfg, gemm_gflops(), done if args.resume else 0, available_cpus())}")
+        return 0
     with ResultLock(out):  # held for the whole run: no other process writes this file meanwhile
         found = existing_result(out, cfg)
         if found.kind == "unfinished" and not found.trials:  # stopped in trial 0: nothing to keep or resume
@@ -343,13 +444,19 @@ def _cmd_run(args) -> int:
                    "unreadable": f"a file it cannot read now ({found.detail})"}[found.kind]
             raise UsageError(f"{out} already holds {why}; --overwrite replaces it, or pick another --out")
         if not args.quiet:
-            print(f"{cfg.task} / {cfg.table_name} / k={cfg.k:g} / seed {cfg.seed} ({cfg.protocol} preset): "
-                  f"{cfg.num_random} random + {cfg.num_learned} learned trials (trials 0-{cfg.num_trials - 1}), "
-                  f"P={cfg.num_particles}, {cfg.policy_evals} policy evaluations per trial -> {out}", file=sys.stderr)
+            print(_plan_line(cfg, out), file=sys.stderr)
+            print(run_estimate(cfg, gemm_gflops(), len(resume.trials) if resume else 0, available_cpus()),
+                  file=sys.stderr)
             if resume is not None:
                 print(f"resuming at trial {len(resume.trials)} (trials 0-{cfg.num_trials - 1})", file=sys.stderr)
-        result = run_experiment(cfg, progress=None if args.quiet else _progress_printer(),
-                                on_trial=lambda r: write_result(out, r), resume=resume)
+        try:
+            result = run_experiment(cfg, progress=None if args.quiet else _progress_printer(),
+                                    on_trial=lambda r: write_result(out, r), resume=resume)
+        except KeyboardInterrupt:
+            kept = existing_result(out, cfg)
+            print(f"\npipps run: interrupted; {out}: {kept.describe(cfg.num_trials)}"
+                  + (f"; pipps run --resume --out {out} continues it" if kept.trials else ""), file=sys.stderr)
+            return 130
     returns = " ".join(f"{t.eval_return:.2f}" for t in result.trials)
     print(f"evaluated return per trial (trial 0 first): {returns}")
     verdict = "success" if result.success else "failure"
@@ -359,7 +466,7 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_sweep(args) -> int:
-    from pipps.experiments.sweep import import_ray, plan, run_sweep
+    from pipps.experiments.sweep import import_ray, run_sweep, survey
     from pipps.experiments.tables import table_configs
 
     if args.address is not None and args.backend != "ray":
@@ -386,11 +493,7 @@ def _cmd_sweep(args) -> int:
         raise UsageError(str(err)) from None
     fixed = {name for cell in table.cells for name, _ in cell.values}
     overrides = _check_settings(args.settings, SWEEP_OWN_OPTIONS, fixed)
-    methods = args.methods.split(",") if args.methods else None
-    try:
-        ks = [float(k) for k in args.ks.split(",")] if args.ks else None
-    except ValueError:
-        raise UsageError(f"--k: expected comma-separated numbers, got {args.ks!r}") from None
+    methods, ks = args.methods, args.ks  # lists, read and checked by argparse
     seeds = range(args.seed_start, args.seed_start + args.seeds)
     try:
         configs = table_configs(table, seeds, args.preset, methods=methods, ks=ks, overrides=overrides)
@@ -400,27 +503,87 @@ def _cmd_sweep(args) -> int:
         raise UsageError("no cell of the table matches --methods/--k")
     check_output_folder(args.out, create=not args.dry_run)
     claim_sweep_folder(args.out, configs, write=False)  # the real sweep writes it (run_sweep)
-    todo, done, resumes = plan(configs, args.out)
-    print(f"{len(configs)} experiments: {len(done)} already complete, {len(todo)} to run "
-          f"({sum(1 for n in resumes if n)} resumed from their last finished trial) with {_layout(args, len(todo))} "
+    rows = survey(configs, args.out)
+    todo = [(cfg, path, found) for cfg, path, found in rows if found.kind != "complete"]
+    resumed = sum(1 for *_, found in todo if found.kind == "unfinished" and found.trials)
+    workers = _sweep_workers(args, len(todo))
+    _preflight_sweep(args, todo, workers)
+    print(f"{len(configs)} experiments: {len(rows) - len(todo)} already complete, {len(todo)} to run "
+          f"({resumed} resumed from their last finished trial) with {_layout(args, len(todo))} "
           f"({args.backend}) -> {args.out}/", file=sys.stderr)
+    from pipps.cli_report import SweepProgress, kept_report, sweep_estimate
+    from pipps.experiments.budget import gemm_gflops
+
+    starts = [(cfg, path, found.trials if found.kind == "unfinished" else 0) for cfg, path, found in todo]
+    gflops = gemm_gflops() if todo else 0.0
     if args.dry_run:
-        for (_, path), n in zip(todo, resumes):
-            print(f"  resume at trial {n}  {path}" if n else f"  run  {path}")
+        for cfg, path, found in todo:
+            if found.kind == "unfinished" and found.trials:
+                print(f"  resume at trial {found.trials}  {path}  ({found.describe(cfg.num_trials)})")
+            elif found.kind == "damaged":
+                print(f"  run  {path}  (a damaged file there is set aside first: {found.detail})")
+            else:
+                print(f"  run  {path}")
+        for line in sweep_estimate(starts, gflops, workers):
+            print(line)
         return 0
+    for line in sweep_estimate(starts, gflops, workers):
+        print(line, file=sys.stderr)
+    progress = SweepProgress(starts, gflops, workers) if todo else None
 
     def on_done(path, err, finished, total):
         status = "FAILED " + err.splitlines()[0] if err else "done"
+        if progress is not None:
+            progress.finished(path)
         print(f"[{finished}/{total}] {status}: {path}", file=sys.stderr, flush=True)
 
-    report = run_sweep(configs, args.out, jobs=args.jobs, on_done=on_done, backend=args.backend,
-                       address=args.address, batched=args.batched, batching=args.batching)
+    try:
+        report = run_sweep(configs, args.out, jobs=args.jobs, on_done=on_done, backend=args.backend,
+                           address=args.address, batched=args.batched, batching=args.batching, on_trial=progress)
+    except KeyboardInterrupt:
+        print("\npipps sweep: interrupted; the workers are stopped", file=sys.stderr)
+        for line in kept_report([(cfg, path) for cfg, path, _ in todo], _command_line()):
+            print(line, file=sys.stderr)
+        return 130
     for path, note in report.notes.items():
         print(f"  note: {path}: {note}", file=sys.stderr)
     print(f"ran {len(report.ran)}, skipped {len(report.skipped)} (complete, or running in another process), "
           f"failed {len(report.failed)} "
           f"in {report.seconds / 60:.1f} min")
     return 1 if report.failed else 0
+
+
+def _sweep_workers(args, experiments: int) -> int:
+    """How many experiments a sweep runs at once (for its memory check and its ETA)."""
+    if args.batched:
+        return 1
+    if args.backend == "ray":
+        return args.jobs or max(experiments, 1)
+    from pipps.experiments.sweep import available_cpus, cpu_layout
+
+    return cpu_layout(args.jobs, max(experiments, 1), available_cpus())[0]
+
+
+def _preflight_sweep(args, todo, workers: int) -> None:
+    """The noise and memory checks of :mod:`pipps.experiments.preflight`, once per cell."""
+    from pipps.experiments.preflight import check_experiment
+
+    cells: dict = {}
+    for cfg, *_ in todo:
+        cells[dataclasses.replace(cfg, seed=0)] = cells.get(dataclasses.replace(cfg, seed=0), 0) + 1
+    for cfg, seeds in cells.items():
+        check_experiment(cfg, seeds=seeds if args.batched else 1, processes=workers,
+                         particles="--set num_particles", k="--k")
+
+
+#: the command line as typed (set by :func:`main`), for the "resume with" line of an interrupted sweep
+_ARGV: list[str] = []
+
+
+def _command_line() -> str:
+    import shlex
+
+    return "pipps " + shlex.join(_ARGV)
 
 
 def _result_paths(items):
@@ -455,6 +618,8 @@ def _cmd_table(args) -> int:
             summaries.append(read_summary(p))
         except ResultError as err:
             skipped.append(str(err))
+    args.preset, note = _resolve_preset(args.preset, summaries, args.results)
+    tables = [_labelled(t, args.preset) for t in tables]
     # with --by, a result that departs from the preset only in that setting counts: the groups keep it apart
     counted_here = [s for s in summaries if not counts(s["config"], args.preset, args.custom, vary=args.by)]
     counted, unjudged = judge_counted(counted_here, args.preset, custom=True)
@@ -466,7 +631,10 @@ def _cmd_table(args) -> int:
         print("Evaluated return per trial (trial 0 is the random trial):\n")
         print(render_curves(counted))
         print()
-    print(f"{len(counted)} complete results of the {args.preset} preset counted; "
+    if note:
+        print(note, file=sys.stderr)
+    print(f"{len(counted)} complete results of the {args.preset} preset"
+          + ("" if args.preset == "thesis" else " (not the thesis protocol)") + " counted; "
           f"{len(summaries) - len(counted)} complete results of other settings and {len(skipped)} incomplete or "
           "corrupt files not counted")
     for s in summaries:
@@ -482,9 +650,41 @@ def _cmd_table(args) -> int:
     if not printed:
         where = ", ".join(map(str, args.results))
         print(f"pipps table: no complete result of the {args.preset} preset in {where}"
-              + (f" for table {args.table}" if args.table else ""), file=sys.stderr)
+              + (f" for table {args.table}" if args.table else "") + _other_presets(summaries, args.preset),
+              file=sys.stderr)
         return 1
     return 0
+
+
+def _resolve_preset(asked: str | None, summaries, where) -> tuple[str, str]:
+    """The experiment preset pipps table / plot count: ``--preset`` if given; else thesis, unless no
+    complete result is of the thesis preset and all are of one other, which is then counted (tables
+    labelled by :func:`_labelled`). Returns it and a note for stderr when it was chosen so."""
+    if asked is not None:
+        return asked, ""
+    found = sorted({s["config"].protocol for s in summaries})
+    if "thesis" in found or len(found) != 1:
+        return "thesis", ""
+    preset = found[0]
+    n = len(summaries)
+    return preset, (f"note: no complete result of the thesis preset in {', '.join(map(str, where))}: counting its {n} "
+                    f"result(s) of the {preset} preset instead, which is not the thesis protocol; the thesis' values "
+                    f"are shown for orientation only (--preset thesis counts the thesis preset alone)")
+
+
+def _other_presets(summaries, preset: str) -> str:
+    others = sorted({s["config"].protocol for s in summaries} - {preset})
+    return f"; the complete results there are of the {' and '.join(others)} preset(s): --preset {others[0]} counts " \
+           "them" if others else ""
+
+
+def _labelled(table, preset: str):
+    """``table`` titled as counting ``preset``'s results when that is not the thesis protocol."""
+    if preset == "thesis":
+        return table
+    head, sep, rest = table.title.partition(" — ")
+    return dataclasses.replace(table, title=f"{head} ({preset} preset, not the thesis protocol; thesis values for "
+                                            f"orientation only){sep}{rest}")
 
 
 def _print_tables(args, tables, counted) -> int:
@@ -549,12 +749,22 @@ def _study_kind(path) -> str | None:
 
 def _cmd_plot(args) -> int:
     from pipps.experiments.plot import check_viewer, render_png
+    from pipps.experiments.storage import check_new_file, publish
 
+    if args.png:
+        check_viewer()  # before anything is read or drawn: what is missing is named with its install line
+    if args.size and not args.png:
+        raise UsageError("--size sizes the --png rendering; give --png too")
     try:
         paths = _result_paths(args.results)
     except FileNotFoundError as err:
         print(f"pipps plot: error: {err}", file=sys.stderr)
         return 2
+    check_new_file(args.out, overwrite=args.overwrite, option="--out", inputs=tuple(paths), command="pipps plot")
+    if args.png:
+        if args.png == args.out:
+            raise UsageError("--png and --out name one file")
+        check_new_file(args.png, overwrite=args.overwrite, option="--png", inputs=tuple(paths), command="pipps plot")
     studies = [k for k in map(_study_kind, paths) if k is not None]
     if studies:
         if len(paths) != 1:
@@ -568,18 +778,19 @@ def _cmd_plot(args) -> int:
             raise UsageError(f"--figure {figure} draws a study file (pipps study {figure} / pipps bench output)")
     if args.table is not None and figure not in ("cells", "curves"):
         raise UsageError("--table selects the cells of --figure cells or curves")
-    if args.png:
-        check_viewer()  # before the recording is written: a missing viewer is named, not a traceback
     draw = _study_figure if studies else (_result_figure if figure in ("overview", "diagnostics") else _table_figure)
-    size, what = draw(figure, paths, args)
+    with publish(args.out, overwrite=args.overwrite, command="pipps plot") as tmp:
+        size, what = draw(figure, paths, args, tmp)
+        if args.png:
+            with publish(args.png, overwrite=args.overwrite, command="pipps plot") as png:
+                render_png(tmp, png, args.size or size)
     print(f"wrote {args.out} ({what})")
     if args.png:
-        render_png(args.out, args.png, args.size or size)
         print(f"wrote {args.png}")
     return 0
 
 
-def _study_figure(figure, paths, args):
+def _study_figure(figure, paths, args, out):
     from pipps import charts as ch
     from pipps.studies import figures as f
 
@@ -588,13 +799,13 @@ def _study_figure(figure, paths, args):
 
         result = read_bench(paths[0])
         fig, _ = f.bench_figure(result)
-        f.record_bench(result, args.out)
+        f.record_bench(result, out)
     else:
         from pipps.studies.gradients import read_study
 
         result = read_study(paths[0])
         fig, _ = (f.landscape_figure if figure == "landscape" else f.variance_figure)(result)
-        (f.record_landscape if figure == "landscape" else f.record_variance)(result, args.out)
+        (f.record_landscape if figure == "landscape" else f.record_variance)(result, out)
     return ch.size(fig), f"the {figure} figure of {paths[0]}"
 
 
@@ -611,7 +822,7 @@ def _read_each(paths, reader) -> list:
     return read
 
 
-def _result_figure(figure, paths, args):
+def _result_figure(figure, paths, args, out):
     from pipps import charts as ch
     from pipps.experiments.figures import diagnostics_figure, record_diagnostics
     from pipps.experiments.plot import group_name, record
@@ -621,16 +832,16 @@ def _result_figure(figure, paths, args):
     if not results:
         raise UsageError("no complete results to plot")
     if figure == "overview":
-        record(results, args.out)
+        record(results, out)
         return "1600x1000", f"{len(results)} experiments"
     groups = {}
     for r in sorted(results, key=lambda r: (group_name(r), r.config.seed)):
         groups.setdefault(group_name(r), r)  # the lowest seed of each group
-    record_diagnostics(list(groups.items()), args.out)
+    record_diagnostics(list(groups.items()), out)
     return ch.size(diagnostics_figure(list(groups.items()))), f"the final trials of {len(groups)} experiment groups"
 
 
-def _table_figure(figure, paths, args):
+def _table_figure(figure, paths, args, out):
     from pipps import charts as ch
     from pipps.experiments import figures as f
     from pipps.experiments.results import read_summary
@@ -641,6 +852,10 @@ def _table_figure(figure, paths, args):
         tables = [get_table(args.table)] if args.table else list(TABLES.values())
     except ValueError as err:
         raise UsageError(str(err)) from None
+    args.preset, note = _resolve_preset(args.preset, summaries, args.results)
+    if note:
+        print(note, file=sys.stderr)
+    tables = [_labelled(t, args.preset) for t in tables]
     if figure == "curves":
         filled = [(t, [(c, cell_summaries(t, c, summaries, args.preset, args.custom)) for c in t.cells]) for t in tables]
         filled = [(t, cells) for t, cells in filled if any(rs for _, rs in cells)]
@@ -648,9 +863,9 @@ def _table_figure(figure, paths, args):
             raise UsageError(f"the results fill cells of tables {', '.join(t.name for t, _ in filled)}: pick one with --table")
         if not filled:
             raise UsageError(f"no result of the {args.preset} preset counts in "
-                             + (f"table {args.table}" if args.table else "any table"))
+                             + (f"table {args.table}" if args.table else "any table") + _other_presets(summaries, args.preset))
         table, cells = filled[0]
-        f.record_curves(table, cells, args.out)
+        f.record_curves(table, cells, out)
         n = sum(len(rs) for _, rs in cells)
         return ch.size(f.curves_figure(table, cells)), f"learning curves of {n} experiments in table {table.name}"
     judged, errors = judge_counted(summaries, args.preset, args.custom)
@@ -660,8 +875,8 @@ def _table_figure(figure, paths, args):
     filled = [(t, cells) for t, cells in filled if any(c.n for c in cells)]
     if not filled:
         raise UsageError(f"no result of the {args.preset} preset counts in "
-                         + (f"table {args.table}" if args.table else "any table"))
-    f.record_cells(filled, args.out)
+                         + (f"table {args.table}" if args.table else "any table") + _other_presets(summaries, args.preset))
+    f.record_cells(filled, out)
     n = sum(c.n for _, cells in filled for c in cells)
     return ch.size(f.cells_figure(filled)), f"success rates in table(s) {', '.join(t.name for t, _ in filled)} " \
         f"({n} results counted over their cells)"
@@ -677,38 +892,59 @@ def _default_trial(path) -> int:
     return ok[-1]
 
 
-def _cmd_study(args) -> int:
+def _study_outputs(args, default: str, command: str):
+    """The study's --out and --rrd, checked before any work (storage.check_new_file)."""
     from pathlib import Path
 
-    import numpy as np
+    from pipps.experiments.storage import check_new_file
 
-    from pipps.experiments.results import ResultError
-    from pipps.studies import gradients as g
+    out = args.out or default
+    rrd = args.rrd or str(Path(out).with_suffix(".rrd"))
+    check_new_file(out, overwrite=args.overwrite, option="--out", suffix=".h5", inputs=(args.result,), command=command)
+    check_new_file(rrd, overwrite=args.overwrite, option="--rrd", suffix=".rrd", inputs=(args.result,),
+                   command=command)
+    return out, rrd
+
+
+def _snapshot(args, particles: int, estimators):
+    """The study's snapshot, after the memory check of its largest estimate (preflight.check_study)."""
+    from pipps.experiments.preflight import check_study
     from pipps.studies.snapshot import load_snapshot
 
+    trial = args.trial if args.trial is not None else _default_trial(args.result)
+    snap = load_snapshot(args.result, trial)
+    size = snap.config.num_inducing if snap.sparse else snap.num_points
+    check_study(snap.config, size, particles, estimators)
+    return snap
+
+
+def _cmd_study(args) -> int:
+    import numpy as np
+
+    from pipps.cli_report import study_caveat
+    from pipps.experiments.results import ResultError
+    from pipps.experiments.storage import publish
+    from pipps.studies import gradients as g
+
     landscape = args.study == "landscape"
-    quick = {"estimators": "rp,tp", "repeats": 3, "direction": "random"}
-    quick.update({"particles": 30, "deltas": "0:1.5:3"} if landscape else {"particles": "10,30", "deltas": "0,1.5"})
-    full = {"estimators": ",".join(g.DEFAULT_ESTIMATORS) if landscape else "rp,lr_plain,lr,tp",
+    quick = {"estimators": ["rp", "tp"], "repeats": 3, "direction": "random"}
+    quick.update({"particles": 30, "deltas": (0.0, 1.5, 3)} if landscape else {"particles": [10, 30], "deltas": [0.0, 1.5]})
+    full = {"estimators": list(g.DEFAULT_ESTIMATORS) if landscape else ["rp", "lr_plain", "lr", "tp"],
             "repeats": 10 if landscape else 30}
-    full.update({"particles": 1000, "deltas": "0:1.5:16"} if landscape else {"particles": "10,30,100,300,1000", "deltas": "0,1.5"})
+    full.update({"particles": 1000, "deltas": (0.0, 1.5, 16)} if landscape
+                else {"particles": [10, 30, 100, 300, 1000], "deltas": [0.0, 1.5]})
     value = lambda k: getattr(args, k) if getattr(args, k) is not None else (quick if args.quick else full)[k]  # noqa: E731
     direction = "random" if args.quick and args.direction == "pilco" else args.direction
+    out, rrd = _study_outputs(args, f"study_{args.study}.h5", f"pipps study {args.study}")
+    estimators = value("estimators") if isinstance(value("estimators"), list) else value("estimators").split(",")
+    deltas = np.linspace(*value("deltas")) if landscape else np.array(value("deltas"), dtype=float)
+    particles = value("particles")
     try:
-        if landscape:
-            parts = value("deltas").split(":")
-            if len(parts) != 3:
-                raise ValueError(f"--deltas: expected START:STOP:NUM, got {value('deltas')!r}")
-            deltas = np.linspace(float(parts[0]), float(parts[1]), int(parts[2]))
-        else:
-            deltas = np.array([float(x) for x in value("deltas").split(",")])
-            particles = [int(x) for x in str(value("particles")).split(",")]
-        trial = args.trial if args.trial is not None else _default_trial(args.result)
-        snap = load_snapshot(args.result, trial)
-        common = dict(estimators=value("estimators").split(","), repeats=value("repeats"), direction=direction,
+        snap = _snapshot(args, max(particles) if not landscape else particles, estimators)
+        common = dict(estimators=estimators, repeats=value("repeats"), direction=direction,
                       seed=args.seed, choices=args.choices, progress=lambda msg: print(f"  {msg}", file=sys.stderr))
         if landscape:
-            result = g.landscape(snap, deltas=deltas, particles=value("particles"), **common)
+            result = g.landscape(snap, deltas=deltas, particles=particles, **common)
         else:
             result = g.variance_study(snap, deltas=deltas, particles=particles, **common)
     except (ValueError, FileNotFoundError, ResultError) as err:
@@ -716,53 +952,48 @@ def _cmd_study(args) -> int:
         return 2
     from pipps.studies import figures
 
-    out = args.out or f"study_{args.study}.h5"
-    rrd = args.rrd or str(Path(out).with_suffix(".rrd"))
-    g.write_study(out, result)
-    (figures.record_landscape if landscape else figures.record_variance)(result, rrd)
+    with publish(out, overwrite=args.overwrite, command="pipps study") as tmp_out, \
+            publish(rrd, overwrite=args.overwrite, command="pipps study") as tmp_rrd:
+        g.write_study(tmp_out, result)
+        (figures.record_landscape if landscape else figures.record_variance)(result, tmp_rrd)
     print(g.landscape_table(result) if landscape else g.variance_table(result))
+    caveat = study_caveat(args.study, snap.config, particles=particles, repeats=value("repeats"), direction=direction,
+                          deltas=deltas, choices=args.choices)
+    if caveat:
+        print(f"\n{caveat}")
     print(f"\nwrote {out} and {rrd} ({result.seconds:.0f} s)")
     return 0
 
 
-def _float_list(option: str, text: str) -> list[float]:
-    try:
-        return [float(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise ValueError(f"{option}: expected comma-separated numbers, got {text!r}") from None
-
-
 def _cmd_bench(args) -> int:
-    from pathlib import Path
-
     from pipps.experiments.results import ResultError
+    from pipps.experiments.storage import publish
     from pipps.studies import bench as b
-    from pipps.studies.snapshot import load_snapshot
 
-    quick = {"estimators": "rp,tp", "particles": "20", "deltas": "0,1.5", "repeats": 3, "reference_repeats": 4}
-    full = {"estimators": "rp,lr,tp,gtp", "particles": "30,100,300,1000", "deltas": "0,1.5", "repeats": 20,
+    quick = {"estimators": "rp,tp", "particles": [20], "deltas": [0.0, 1.5], "repeats": 3, "reference_repeats": 4}
+    full = {"estimators": "rp,lr,tp,gtp", "particles": [30, 100, 300, 1000], "deltas": [0.0, 1.5], "repeats": 20,
             "reference_repeats": 50}
     value = lambda k: getattr(args, k) if getattr(args, k) is not None else (quick if args.quick else full)[k]  # noqa: E731
+    out, rrd = _study_outputs(args, args.out, "pipps bench")
+    estimators = value("estimators").split(",")
     try:
-        trial = args.trial if args.trial is not None else _default_trial(args.result)
-        snap = load_snapshot(args.result, trial)
+        snap = _snapshot(args, max(value("particles")), estimators + [args.reference])
         result = b.bench(
-            snap, deltas=[float(x) for x in value("deltas").split(",")],
-            particles=[int(x) for x in value("particles").split(",")], estimators=value("estimators").split(","),
+            snap, deltas=list(value("deltas")), particles=list(value("particles")), estimators=estimators,
             repeats=value("repeats"), reference=args.reference, reference_repeats=value("reference_repeats"),
             time_repeats=2 if args.quick else 5, direction="random" if args.quick else args.direction, seed=args.seed,
-            variance_tols=_float_list("--variance-tols", args.variance_tols),
-            progress=lambda msg: print(f"  {msg}", file=sys.stderr))
+            variance_tols=list(args.variance_tols), progress=lambda msg: print(f"  {msg}", file=sys.stderr))
     except (ValueError, FileNotFoundError, ResultError) as err:
         print(f"pipps bench: error: {err}", file=sys.stderr)
         return 2
     from pipps.studies.figures import record_bench
 
-    rrd = args.rrd or str(Path(args.out).with_suffix(".rrd"))
-    b.write_bench(args.out, result)
-    record_bench(result, rrd)
+    with publish(out, overwrite=args.overwrite, command="pipps bench") as tmp_out, \
+            publish(rrd, overwrite=args.overwrite, command="pipps bench") as tmp_rrd:
+        b.write_bench(tmp_out, result)
+        record_bench(result, tmp_rrd)
     print(b.bench_table(result))
-    print(f"\nwrote {args.out} and {rrd} ({result.seconds:.0f} s)")
+    print(f"\nwrote {out} and {rrd} ({result.seconds:.0f} s)")
     return 0
 
 
@@ -794,6 +1025,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from pipps.precision import enable_float64
 
+    global _ARGV
+    _ARGV = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     enable_float64()
     enable_compilation_cache()
@@ -824,6 +1057,11 @@ def main(argv: list[str] | None = None) -> int:
 def _dispatch(args) -> int:
     if args.command == "rollout":
         from pipps.demo import random_policy_rollouts
+        from pipps.experiments.preflight import check_noise
+        from pipps.tasks.presets import make_task
+
+        horizon = make_task(args.task, preset=args.preset).problem.horizon
+        check_noise(args.task, args.preset, args.k, horizon * args.episodes)  # the policy squares observations too
 
         rep = random_policy_rollouts(args.task, args.preset, args.k, args.policy, args.episodes, args.seed)
         print(f"{rep.task} ({rep.preset} preset, k={rep.k:g}), {rep.policy}:")

@@ -696,8 +696,9 @@ def test_cli_rejects_bad_settings_and_tables(capsys):
 
     assert main(["run", "--set", "num_particles=0"]) == 2
     assert "num_particles" in capsys.readouterr().err
-    assert main(["sweep", "--table", "9.9"]) == 2
-    assert "unknown table" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # read by argparse: refused before anything else
+        main(["sweep", "--table", "9.9"])
+    assert exc.value.code == 2 and "unknown table '9.9'" in capsys.readouterr().err
     assert main(["run", "--set", "momentum=2"]) == 2
     assert "momentum" in capsys.readouterr().err
     assert main(["sweep", "--table", "4.1", "--address", "auto"]) == 2

@@ -349,7 +349,8 @@ def test_cli_plot_draws_the_committed_unicycle_cells_and_curves(tmp_path, capsys
     assert main(["plot", *map(str, UNICYCLE), "--figure", "curves", "--table", "4.4", "--out", str(out)]) == 0
     rec, _, _ = read_rrd(out)
     assert "/curves/unicycle_tp/data/median" in rec and "/curves/unicycle_tp_upright/data/threshold" in rec
-    assert main(["plot", *map(str, UNICYCLE), "--figure", "cells", "--out", str(out)]) == 0
+    assert main(["plot", *map(str, UNICYCLE), "--figure", "cells", "--out", str(out)]) == 2  # exists: refused
+    assert main(["plot", *map(str, UNICYCLE), "--figure", "cells", "--out", str(out), "--overwrite"]) == 0
     rec, _, _ = read_rrd(out)
     assert labels(rec, "/cells/table_4_4/data/tp/counts") == [f"{len(UNICYCLE)}"]
     assert "success rates in table(s) 4.4 (4 results counted over their cells)" in capsys.readouterr().out
@@ -368,12 +369,14 @@ def test_cli_plot_draws_a_study_file_with_its_own_figure(tmp_path):
 @pytest.mark.parametrize("argv, needle", [
     (["--figure", "landscape"], "draws a study file"),
     (["--table", "4.4"], "--table selects"),
-    (["--figure", "curves", "--table", "9.9"], "unknown table"),
     (["--figure", "curves", "--table", "4.1"], "no result"),
 ])
 def test_cli_plot_errors_name_the_problem(argv, needle, tmp_path, capsys):
     assert main(["plot", str(UNICYCLE[0]), "--out", str(tmp_path / "x.rrd"), *argv]) == 2
     assert needle in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # an unknown table is refused by argparse, before any file is read
+        main(["plot", str(UNICYCLE[0]), "--out", str(tmp_path / "x.rrd"), "--table", "9.9"])
+    assert exc.value.code == 2 and "unknown table '9.9'" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -31,7 +31,7 @@ LAYERS = {
     "pipps.propagation": 4, "pipps.systems": 4,
     "pipps.stats": 5,
     "pipps.experiments": 6, "pipps.studies": 6, "pipps.charts": 6,
-    "pipps.cli": 7, "pipps.demo": 7, "pipps.tasks.envs": 7,
+    "pipps.cli": 7, "pipps.cli_options": 7, "pipps.cli_report": 7, "pipps.demo": 7, "pipps.tasks.envs": 7,
 }
 #: imports against the layering, each made on request inside a function
 UPWARD = {("pipps.tasks", "pipps.tasks.envs")}  # register_envs() and the lazy ENV_IDS, PippsEnv

@@ -162,13 +162,15 @@ def test_cli_variance_quick_writes_the_documented_file(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv, needle", [
-    (["--deltas", "0:1.5"], "--deltas"),
     (["--trial", "12"], "FITC"),
     (["--estimators", "rp,xx"], "estimators"),
 ])
-def test_cli_study_errors_name_the_problem(argv, needle, capsys):
-    assert main(["study", "landscape", str(RESULT), "--quick", *argv]) == 2
+def test_cli_study_errors_name_the_problem(argv, needle, capsys, tmp_path):
+    assert main(["study", "landscape", str(RESULT), "--quick", "--out", str(tmp_path / "s.h5"), *argv]) == 2
     assert needle in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # a malformed grid is refused by argparse, before the file is read
+        main(["study", "landscape", str(RESULT), "--quick", "--deltas", "0:1.5"])
+    assert exc.value.code == 2 and "--deltas" in capsys.readouterr().err
 
 
 def test_bench_pareto_front_and_errors():

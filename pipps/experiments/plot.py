@@ -138,14 +138,52 @@ def _log_diagnostics(rec, name: str, r: ExperimentResult, color) -> None:
                     rec.log(f"diagnostics/log10_variance/{name}/{part}", rr.Scalars([np.log10(v)]))
 
 
+#: what --png needs, as one install line (Debian/Ubuntu package names)
+PNG_INSTALL = "apt-get install xvfb mesa-vulkan-drivers (Debian/Ubuntu); the viewer comes with pip install rerun-sdk"
+
+#: where Vulkan drivers announce themselves (the Khronos loader's search path) and where Mesa's
+#: software OpenGL lives: the viewer draws through one of them on the virtual screen
+_VULKAN_ICDS = ("/usr/share/vulkan/icd.d", "/etc/vulkan/icd.d", "/usr/local/share/vulkan/icd.d")
+_MESA_GL = ("/usr/lib/*/dri/swrast_dri.so", "/usr/lib64/dri/swrast_dri.so", "/usr/lib/dri/swrast_dri.so",
+            "/usr/lib/*/dri/llvmpipe_dri.so", "/usr/lib64/dri/llvmpipe_dri.so")
+
+
+def graphics_driver() -> str | None:
+    """A driver the rerun viewer can draw with under Xvfb: a Vulkan driver (``*.json`` in the loader's
+    folders, or named by ``VK_ICD_FILENAMES``/``VK_DRIVER_FILES``) or Mesa's software OpenGL; None if
+    neither is installed. Not Linux: assumed present (the check is the Linux packages')."""
+    import glob
+    import os
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return "the system's"
+    for var in ("VK_ICD_FILENAMES", "VK_DRIVER_FILES"):
+        named = [p for p in os.environ.get(var, "").split(os.pathsep) if p and os.path.exists(p)]
+        if named:
+            return named[0]
+    for folder in _VULKAN_ICDS:
+        found = sorted(glob.glob(os.path.join(folder, "*.json")))
+        if found:
+            return found[0]
+    for pattern in _MESA_GL:
+        found = sorted(glob.glob(pattern))
+        if found:
+            return found[0]
+    return None
+
+
 def check_viewer() -> tuple[str, str]:
-    """``(xvfb-run, rerun)`` on PATH, or a :class:`FileNotFoundError` that says what to install."""
+    """``(xvfb-run, rerun)`` on PATH and a graphics driver for them (:func:`graphics_driver`), or a
+    :class:`FileNotFoundError` that names what is missing and the line that installs it."""
     xvfb = shutil.which("xvfb-run")
     viewer = shutil.which("rerun")
-    if xvfb is None or viewer is None:
-        missing = " and ".join(n for n, p in (("xvfb-run", xvfb), ("the rerun viewer", viewer)) if p is None)
-        raise FileNotFoundError(f"--png needs {missing} on PATH (Debian: apt-get install xvfb mesa-vulkan-drivers; "
-                                "the viewer comes with rerun-sdk); the .rrd recording needs neither")
+    driver = graphics_driver()
+    missing = [n for n, p in (("xvfb-run", xvfb), ("the rerun viewer", viewer),
+                              ("a Vulkan or Mesa OpenGL driver", driver)) if p is None]
+    if missing:
+        raise FileNotFoundError(f"--png needs {' and '.join(missing)}: {PNG_INSTALL}; the .rrd recording needs none "
+                                "of them (drop --png)")
     return xvfb, viewer
 
 

@@ -1,0 +1,177 @@
+"""What the ``pipps`` command prints besides results: cost estimates before a run, a sweep's
+progress after every trial, what an interrupted sweep kept, and the caveats of a study whose
+settings are not the thesis'. Printing only; the numbers come from the library
+(:mod:`pipps.experiments.budget`, :mod:`pipps.experiments.storage`)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+from pipps.experiments import budget
+from pipps.experiments.config import ExperimentConfig
+
+
+def _err(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+# -- estimates ---------------------------------------------------------------------------------------
+
+
+def machine_line(gflops: float) -> str:
+    return (f"this machine's float64 GEMM rate {gflops:.0f} Gflop/s per core (the model's reference: "
+            f"{budget.REFERENCE_GFLOPS:.0f} Gflop/s; docs/performance.md, \"Estimating a run's cost\")")
+
+
+def run_estimate(cfg: ExperimentConfig, gflops: float, done: int, cpus: int) -> str:
+    """One experiment's estimate: core-minutes of what is left (trials ``done`` on), by phase."""
+    est = budget.estimate(cfg, gflops, cold=budget.cache_is_cold())
+    left = est.remaining(done)
+    share = left / est.total if est.total else 0.0
+    where = (f"; with {cpus} CPUs a lone experiment's step ran 1.4-1.5× faster than on one (measured on 2)"
+             if cpus > 1 else "")
+    return (f"estimated cost: {left / 60:.1f} core-minutes"
+            + (f" for trials {done}-{cfg.num_trials - 1}" if done else "")
+            + f" (policy search {share * est.search / 60:.1f}, GP training {share * est.gp / 60:.1f}){where}; "
+            + machine_line(gflops))
+
+
+def sweep_estimate(rows, gflops: float, workers: int) -> list[str]:
+    """A sweep's estimate: per experiment (``rows`` of (config, path, trials done)) and in total."""
+    lines, total, cold = [], 0.0, budget.cache_is_cold()
+    for cfg, path, done in rows:
+        left = budget.estimate(cfg, gflops, cold=cold).remaining(done)
+        total += left
+        lines.append((left, cfg, path, done))
+    out = []
+    if lines:
+        per = [left for left, *_ in lines]
+        out.append(f"estimated cost: {len(lines)} experiment(s), {min(per) / 60:.1f}-{max(per) / 60:.1f} "
+                   f"core-minutes each, {total / 60:.0f} core-minutes in all ({budget.minutes(total)} of one core); "
+                   f"on {workers} worker(s) about {budget.minutes(total / max(workers, 1))} of wall time")
+        out.append(machine_line(gflops))
+    return out
+
+
+# -- a sweep's progress --------------------------------------------------------------------------------
+
+
+class SweepProgress:
+    """Prints a line after every trial of every worker: the trial's time and return, the time its
+    experiment still needs, and the sweep's ETA. The estimates of :mod:`pipps.experiments.budget`
+    are rescaled by how long the finished trials really took (so a machine busy with other work,
+    or a model that is off, corrects itself as the sweep goes)."""
+
+    def __init__(self, rows, gflops: float, workers: int, stream=None):
+        cold = budget.cache_is_cold()
+        self.estimates = {str(path): budget.estimate(cfg, gflops, cold=cold) for cfg, path, _ in rows}
+        self.done = {str(path): done for _, path, done in rows}
+        self.trials = {str(path): cfg.num_trials for cfg, path, _ in rows}
+        self.workers = max(workers, 1)
+        self.actual = self.predicted = 0.0
+        self.start = time.perf_counter()
+        self.stream = stream
+
+    def factor(self) -> float:
+        return self.actual / self.predicted if self.predicted > 0 else 1.0
+
+    def left(self) -> float:
+        """Wall seconds the sweep still needs, at the current factor, on its workers."""
+        core = sum(e.remaining(self.done[p]) for p, e in self.estimates.items())
+        return self.factor() * core / self.workers
+
+    def finished(self, path: str) -> None:
+        """An experiment ended (complete, failed or skipped): nothing of it is left."""
+        if path in self.done:
+            self.done[path] = self.trials[path]
+
+    def __call__(self, event: dict) -> None:
+        path = str(event.get("path"))
+        if event.get("phase") != "evaluated" or path not in self.estimates:
+            return
+        i, n = int(event["trial"]), int(event["trials"])
+        seconds = float(event.get("seconds", 0.0))
+        est = self.estimates[path]
+        if i < len(est.trials):
+            self.actual += seconds
+            self.predicted += est.trials[i]
+        self.done[path] = i + 1
+        mine = self.factor() * est.remaining(i + 1)
+        experiments = sum(1 for p in self.done if self.done[p] < self.trials[p])
+        who = f"cpu {','.join(map(str, event['cpus']))}" if event.get("cpus") else f"pid {event.get('pid')}"
+        ret = f", return {event['eval_return']:.2f}" if "eval_return" in event else ""
+        line = (f"[{who}] {Path(path).name}: trial {i} of 0-{n - 1} done in {budget.minutes(seconds)}{ret}; "
+                + (f"~{budget.minutes(mine)} more for it; " if i + 1 < n else "")
+                + f"sweep: {experiments} experiment(s) unfinished, ETA {budget.minutes(self.left())} "
+                  f"({(time.perf_counter() - self.start) / 60:.1f} min so far)")
+        print(line, file=self.stream or sys.stderr, flush=True)
+
+
+# -- what an interrupted sweep kept ----------------------------------------------------------------------
+
+
+def kept_report(rows, command: str) -> list[str]:
+    """After Ctrl-C: each planned file that holds something, with its finished trials, and the
+    command that resumes the rest. ``rows``: (config, path) of the planned experiments."""
+    from pipps.experiments.storage import existing_result
+
+    lines, unfinished = [], 0
+    for cfg, path in rows:
+        found = existing_result(path, cfg)
+        if found.kind == "complete":
+            lines.append(f"  complete: {path}")
+        elif found.kind == "unfinished" and found.trials:
+            unfinished += 1
+            lines.append(f"  {found.describe(cfg.num_trials)}: {path}")
+        elif found.kind != "missing":
+            lines.append(f"  {found.kind}: {path} ({found.detail})")
+    head = (f"kept: {sum(1 for line in lines if 'complete:' in line)} complete file(s), {unfinished} with finished "
+            "trials to resume from" if lines else "kept: no experiment had finished a trial")
+    return [head, *lines, f"resume with the same command: {command}"]
+
+
+# -- caveats of a study ------------------------------------------------------------------------------------
+
+#: the settings of the thesis' figures that pipps study quotes numbers of
+THESIS_STUDY = {
+    "landscape": dict(particles=1000, repeats=10, direction="pilco", deltas=(0.0, 1.5),
+                      quote="RP's variance ratio (thesis: ~4·10⁵× at Δ = 1.5 against 0; Fig. 4.2)"),
+    "variance": dict(particles=250, repeats=30, direction="pilco", deltas=(1.5,),
+                     quote="TP against BIW-LR (thesis: TP 10-50 % below BIW-LR at P ≤ 250, chaotic case; Fig. 4.13)"),
+}
+
+
+def study_caveat(kind: str, cfg: ExperimentConfig, *, particles, repeats: int, direction: str, deltas,
+                 choices: str) -> str | None:
+    """A line saying how a study departs from the setting of the thesis number it prints, or None.
+
+    The thesis measured on a thesis-protocol cart-pole swing-up policy (swing-up task, thesis
+    preset), the moment-matching descent direction, the estimators' thesis variants (variance),
+    with at least the particles and repeats of :data:`THESIS_STUDY` and Δ spanning its values."""
+    ref = THESIS_STUDY[kind]
+    off = []
+    if cfg.task != "cartpole_swingup":
+        off.append(f"a {cfg.task} policy (the thesis: cart-pole swing-up)")
+    if cfg.protocol != "thesis":
+        off.append(f"a {cfg.protocol}-preset file (the thesis protocol is --preset thesis)")
+    ps = [int(p) for p in (particles if isinstance(particles, (list, tuple)) else [particles])]
+    if kind == "landscape" and max(ps) < ref["particles"]:
+        off.append(f"P = {max(ps)} (the thesis: {ref['particles']})")
+    if kind == "variance" and min(ps) > ref["particles"]:
+        off.append(f"no P ≤ {ref['particles']}")
+    if repeats < ref["repeats"]:
+        off.append(f"{repeats} repeats (these defaults: {ref['repeats']})")
+    if direction != ref["direction"]:
+        off.append(f"a {direction} direction (the thesis: the moment-matching descent direction)")
+    ds = [float(d) for d in deltas]
+    missing = [d for d in ref["deltas"] if not any(abs(d - x) < 1e-9 for x in ds)]
+    if missing:
+        off.append(f"no Δ = {', '.join(f'{d:g}' for d in missing)}")
+    if kind == "variance" and choices != "thesis":
+        off.append("the library's estimator variants (the thesis': --choices thesis)")
+    if not off:
+        return None
+    return (f"caveat: not the thesis' setting, so {ref['quote']} is for orientation only: this study has "
+            + "; ".join(off) + ".")
