@@ -93,3 +93,21 @@ def test_api_landing_page_lists_every_module_the_reference_builds():
     assert not missing, f"docs/api/index.md does not describe {missing}"
     for module in public:
         assert (ROOT / (module.replace(".", "/"))).is_dir() or (ROOT / (module.replace(".", "/") + ".py")).is_file()
+
+
+def _readme_python_blocks() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    return re.findall(r"^```python\n(.*?)^```", text, re.S | re.M)
+
+
+def test_the_readme_library_example_runs_as_written(capsys):
+    """The README's library example, executed verbatim: a TP gradient of a policy on a GP fitted to
+    one random trial. It must print a finite objective and a nonzero, finite gradient norm."""
+    blocks = _readme_python_blocks()
+    assert len(blocks) == 1, "the README has one library example"
+    exec(compile(blocks[0], "README.md", "exec"), {"__name__": "readme_example"})
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    match = re.fullmatch(r"J = (\S+); \|∇J\| = (\S+)", line)
+    assert match, line
+    value, norm = float(match.group(1)), float(match.group(2))
+    assert 0.0 <= value <= 30.0 and 0.0 < norm < float("inf")
