@@ -27,7 +27,7 @@ cfg = snap.config
 rcfg, est = particle_method(cfg)
 opt = normalized_momentum(cfg.learning_rate, cfg.momentum)
 run = make_policy_optimizer(snap.task, rcfg, est, opt)
-st = init_policy_opt_state(jax.random.PRNGKey(0), snap.policy, snap.model, task=snap.task, config=rcfg,
+st = init_policy_opt_state(jax.random.PRNGKey(0), snap.policy, snap.model, problem=snap.task, config=rcfg,
                            estimator=est, optimizer=opt)
 jax.block_until_ready(st)
 t = time.perf_counter()

@@ -44,7 +44,7 @@ from jax.flatten_util import ravel_pytree
 
 import pipps
 from pipps.particles.forward import RolloutConfig
-from pipps.propagation.config import estimator, thesis_estimator
+from pipps.propagation.estimators import estimator, thesis_estimator
 from pipps.stats import replicate_gradients, z_bound
 from pipps.systems import exact_objective, reference_system
 

@@ -31,7 +31,7 @@ from machine import gemm_gflops  # benchmarks/machine.py
 from pipps.gp import GPConfig, GPHyper, full_posterior, make_data
 from pipps.particles.forward import RolloutConfig, particle_rollout, reparameterized_objective, sample_noise
 from pipps.policies import init_rbf_policy
-from pipps.propagation.config import estimator
+from pipps.propagation.estimators import estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.tasks.presets import make_task
 
@@ -85,10 +85,10 @@ def make_call(task, model, policy, name, overrides, P, T):
 
         return jax.jit(f)
     est = estimator(name) if isinstance(name, str) else estimator(name[0], **name[1])
-    state = init_estimator_state(jax.random.PRNGKey(123), policy, model, task=task, config=cfg, estimator=est)
+    state = init_estimator_state(jax.random.PRNGKey(123), policy, model, problem=task, config=cfg, estimator=est)
 
     def g(key, pol):
-        _, e = estimate(key, state, pol, model, task=task, config=cfg, estimator=est)
+        _, e = estimate(key, state, pol, model, problem=task, config=cfg, estimator=est)
         return e.value, e.grad
 
     return jax.jit(g)

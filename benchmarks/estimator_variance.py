@@ -28,7 +28,7 @@ import numpy as np
 
 import pipps
 from pipps.particles.forward import RolloutConfig
-from pipps.propagation.config import estimator
+from pipps.propagation.estimators import estimator
 from pipps.stats import paired_replicate_gradients, trace_variance, variance_ratio_text
 from pipps.systems.chaotic import SETTINGS, finite_time_lyapunov, kicked_rotor_system
 
@@ -48,7 +48,7 @@ def run_replicates(setting: str, P: int, R: int, seed: int, estimators: dict):
     cfg = RolloutConfig(num_particles=P, model_variance=False)
     run = jax.jit(
         functools.partial(
-            paired_replicate_gradients, task=task, model=model, policy=policy, config=cfg,
+            paired_replicate_gradients, problem=task, model=model, policy=policy, config=cfg,
             estimators=estimators, num_replicates=R,
         )
     )

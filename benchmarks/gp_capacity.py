@@ -46,7 +46,7 @@ def tp_step_seconds(snap, steps: int = 20, reps: int = 3) -> float:
     rcfg, est = particle_method(snap.config)
     opt = normalized_momentum(snap.config.learning_rate, snap.config.momentum)
     run = make_policy_optimizer(snap.task, rcfg, est, opt)
-    state = init_policy_opt_state(jax.random.PRNGKey(0), snap.policy, snap.model, task=snap.task, config=rcfg,
+    state = init_policy_opt_state(jax.random.PRNGKey(0), snap.policy, snap.model, problem=snap.task, config=rcfg,
                                   estimator=est, optimizer=opt)
     jax.block_until_ready(run(jax.random.PRNGKey(1), state, snap.model, num_steps=steps))
     best = np.inf

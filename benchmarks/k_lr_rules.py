@@ -62,7 +62,7 @@ import pipps
 from machine import gemm_gflops  # benchmarks/machine.py
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.combine import inverse_variance
-from pipps.propagation.config import compose, estimator
+from pipps.propagation.estimators import compose, estimator
 from pipps.propagation.cost_terms import plain_costs
 from pipps.propagation.parts import biw_lr, pathwise
 from pipps.propagation.estimate import estimate, init_estimator_state
@@ -130,10 +130,10 @@ def rollout_config(name: str, P: int) -> RolloutConfig:
 def seconds_per_eval(name: str, P: int, est, calls: int = 15) -> float:
     task, model, policy = system(name)
     cfg = rollout_config(name, P)
-    st = init_estimator_state(jax.random.PRNGKey(1), policy, model, task=task, config=cfg, estimator=est)
-    if est.total_propagation and est.needs_previous_k:
-        st, _ = estimate(jax.random.PRNGKey(2), st, policy, model, task=task, config=cfg, estimator=est)
-    f = jax.jit(lambda k: estimate(k, st, policy, model, task=task, config=cfg, estimator=est)[1].grad)
+    st = init_estimator_state(jax.random.PRNGKey(1), policy, model, problem=task, config=cfg, estimator=est)
+    if est.cold_start:  # time the warm state an optimizer runs in, not the first call's fallback
+        st, _ = estimate(jax.random.PRNGKey(2), st, policy, model, problem=task, config=cfg, estimator=est)
+    f = jax.jit(lambda k: estimate(k, st, policy, model, problem=task, config=cfg, estimator=est)[1].grad)
     jax.block_until_ready(f(jax.random.PRNGKey(3)))
     times = []
     for i in range(calls):
@@ -147,7 +147,7 @@ def replicates(name: str, P: int, R: int, seed: int, rules: dict):
     task, model, policy = system(name)
     run = jax.jit(
         functools.partial(
-            paired_replicate_gradients, task=task, model=model, policy=policy, config=rollout_config(name, P),
+            paired_replicate_gradients, problem=task, model=model, policy=policy, config=rollout_config(name, P),
             estimators=rules, num_replicates=R, batch_size=25 if P <= 100 else 5,
         )
     )
@@ -204,7 +204,7 @@ def lg_bias_rows(P: int, R: int, seed: int) -> list[str]:
     ests = {n: estimator("tp", k_lr=n) for n in BIAS_RULES}
     run = jax.jit(
         functools.partial(
-            paired_replicate_gradients, task=task, model=model, policy=policy, config=rollout_config("linear-Gaussian", P),
+            paired_replicate_gradients, problem=task, model=model, policy=policy, config=rollout_config("linear-Gaussian", P),
             estimators=ests, num_replicates=R, batch_size=200,
         )
     )

@@ -5,7 +5,9 @@ a stored trial, compiles it, and writes the optimised HLO's instructions with th
 names source files and lines removed (``stack_frame_id``, ``metadata``) and the instruction numbers
 normalised. Two code versions that produce the same file run the same machine program, so neither
 is slower; the printed objective and first gradient entry show the numbers too. It runs on code
-before and after issue 19's change of ``estimate``'s return order.
+before and after issue 19's change of ``estimate``'s return order, and before and after the pieces
+came to own their state (``propagation/config.py`` became ``estimators.py``, ``task=`` became
+``problem=``, the state a tuple of the pieces' states; both start from a zero "previous" baseline).
 
     PYTHONPATH=OLD_TREE taskset -c 0 python benchmarks/program_identity.py FILE.h5 TRIAL old.txt
     PYTHONPATH=NEW_TREE taskset -c 0 python benchmarks/program_identity.py FILE.h5 TRIAL new.txt
@@ -18,6 +20,7 @@ program (and its rounding).
 from __future__ import annotations
 
 import hashlib
+import importlib
 import inspect
 import re
 import sys
@@ -27,9 +30,15 @@ import jax.numpy as jnp
 
 import pipps
 from pipps.particles.forward import RolloutConfig
-from pipps.propagation.config import estimator
-from pipps.propagation.estimate import EstimatorState, estimate
 from pipps.studies import load_snapshot
+
+try:
+    from pipps.propagation.estimators import estimator
+except ImportError:  # before the pieces owned their state
+    from pipps.propagation.config import estimator
+
+_estimate = importlib.import_module("pipps.propagation.estimate")
+estimate = _estimate.estimate
 
 if hasattr(pipps, "enable_float64"):  # after issue 19 item 4; before it, importing pipps enabled it
     pipps.enable_float64()
@@ -51,11 +60,18 @@ def main(path: str, trial: int, out: str) -> None:
     T = snap.task.horizon
     est = estimator("tp", k_lr="batch")
     config = RolloutConfig(num_particles=300)
-    state = EstimatorState(jnp.zeros(T), jnp.full((T,), 0.5), jnp.asarray(False))
+    params = inspect.signature(estimate).parameters
+    if hasattr(_estimate, "EstimatorState") and "baseline" in _estimate.EstimatorState._fields:  # one central state
+        state = _estimate.EstimatorState(jnp.zeros(T), jnp.full((T,), 0.5), jnp.asarray(False))
+    else:  # each piece's own, from the same numbers: the "previous" baseline zero (no extra rollout)
+        from pipps.propagation.pieces import InitContext
+
+        state = est.init(InitContext(T, snap.task.action_dim, lambda: jnp.zeros(T)))
     state_first = "tuple[EstimatorState, Estimate]" in inspect.getsource(estimate)
+    where = {"problem" if "problem" in params else "task": snap.task}
 
     def value_and_grad(key, policy):
-        pair = estimate(key, state, policy, snap.model, task=snap.task, config=config, estimator=est)
+        pair = estimate(key, state, policy, snap.model, **where, config=config, estimator=est)
         e = pair[1] if state_first else pair[0]
         return e.value, e.grad
 

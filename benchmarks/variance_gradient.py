@@ -38,7 +38,7 @@ def main():
         path, trial = spec.rsplit(":", 1)
         snap = load_snapshot(path, int(trial))
         rcfg, est = particle_method(snap.config)
-        kw = dict(task=snap.task, config=rcfg, estimator=est)
+        kw = dict(problem=snap.task, config=rcfg, estimator=est)
         grad = jax.jit(lambda key, state, model: ravel_pytree(estimate(key, state, snap.policy, model, **kw)[1].grad)[0])
         state = init_estimator_state(jax.random.PRNGKey(99), snap.policy, snap.model, **kw)
         keys = [jax.random.PRNGKey(1000 + r) for r in range(args.repeats)]

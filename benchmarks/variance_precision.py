@@ -56,8 +56,8 @@ def main(argv=None):
         grads = {}
         for prec in ("float64", "float32"):
             rc = rcfg.__class__(**{**rcfg.__dict__, "variance_precision": prec})
-            state = init_estimator_state(jax.random.PRNGKey(99), policy, post, task=task, config=rc, estimator=est)
-            fn = jax.jit(lambda key, s=state, rc=rc: ravel_pytree(estimate(key, s, policy, post, task=task, config=rc, estimator=est)[1].grad)[0])
+            state = init_estimator_state(jax.random.PRNGKey(99), policy, post, problem=task, config=rc, estimator=est)
+            fn = jax.jit(lambda key, s=state, rc=rc: ravel_pytree(estimate(key, s, policy, post, problem=task, config=rc, estimator=est)[1].grad)[0])
             grads[prec] = np.stack([np.asarray(fn(jax.random.PRNGKey(1000 + r))) for r in range(args.repeats)])
         diff = np.linalg.norm(grads["float32"] - grads["float64"], axis=1)
         norms = np.linalg.norm(grads["float64"], axis=1)

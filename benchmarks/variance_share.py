@@ -19,7 +19,7 @@ cfg = snap.config
 def timeit(rcfg, est, steps=20, reps=3):
     opt = normalized_momentum(cfg.learning_rate, cfg.momentum)
     run = make_policy_optimizer(snap.task, rcfg, est, opt)
-    st = init_policy_opt_state(jax.random.PRNGKey(0), snap.policy, snap.model, task=snap.task, config=rcfg, estimator=est, optimizer=opt)
+    st = init_policy_opt_state(jax.random.PRNGKey(0), snap.policy, snap.model, problem=snap.task, config=rcfg, estimator=est, optimizer=opt)
     jax.block_until_ready(run(jax.random.PRNGKey(1), st, snap.model, num_steps=steps))
     best = 1e9
     for r in range(reps):

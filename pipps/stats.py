@@ -9,9 +9,9 @@ benchmarks and the studies.
 * :func:`trace_variance`, :func:`log_variance_ratio` — their variance and a paired comparison.
 
 A replicate splits its key into (state key, earlier-batch key, estimate key): the "previous"
-baseline comes from the extra rollout of :func:`~pipps.propagation.init_estimator_state`, TP's
-"previous" ``k_LR`` from one earlier estimate, as an optimizer's second iteration would have them
-(estimators.md §3, §4).
+baseline comes from the extra rollout of :func:`~pipps.propagation.init_estimator_state`, and an
+estimator whose initial state is a cold start (TP's "previous" ``k_LR``) takes one earlier estimate
+first, as an optimizer's second iteration would have them (estimators.md §3, §4).
 """
 
 from __future__ import annotations
@@ -23,8 +23,9 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from pipps.particles.forward import RolloutConfig
-from pipps.propagation.config import Estimator
-from pipps.propagation.estimate import EstimatorState, estimate, init_estimator_state
+from pipps.propagation.estimate import estimate, init_estimator_state
+from pipps.propagation.estimators import Estimator
+from pipps.propagation.pieces import EstimatorState
 from pipps.tasks.base import Problem
 
 
@@ -63,24 +64,26 @@ def cross_z(u, y, expected):
 
 
 def replicate_state(
-    k_state: jax.Array, k_earlier: jax.Array, policy, model, *, task: Problem, config: RolloutConfig, estimator: Estimator
+    k_state: jax.Array, k_earlier: jax.Array, policy, model, *, problem: Problem, config: RolloutConfig,
+    estimator: Estimator,
 ) -> EstimatorState:
-    """The :class:`EstimatorState` a replicate starts from, from keys independent of its estimate."""
-    state = init_estimator_state(k_state, policy, model, task=task, config=config, estimator=estimator)
-    if estimator.total_propagation and estimator.needs_previous_k:
-        state, _ = estimate(k_earlier, state, policy, model, task=task, config=config, estimator=estimator)
+    """The :class:`EstimatorState` a replicate starts from, from keys independent of its estimate: the
+    initial state, after one earlier estimate where that is a cold start."""
+    state = init_estimator_state(k_state, policy, model, problem=problem, config=config, estimator=estimator)
+    if estimator.cold_start:
+        state, _ = estimate(k_earlier, state, policy, model, problem=problem, config=config, estimator=estimator)
     return state
 
 
 def replicate_gradients(
-    key: jax.Array, task: Problem, model, policy, config: RolloutConfig, estimator: Estimator, num: int
+    key: jax.Array, problem: Problem, model, policy, config: RolloutConfig, estimator: Estimator, num: int
 ) -> np.ndarray:
     """(num, n_θ) independent estimates of ∇θJ: jit + vmap over keys, in chunks with chunk·P² ≤ 5e6."""
 
     def one(k):
         k_state, k_earlier, k_batch = jax.random.split(k, 3)
-        state = replicate_state(k_state, k_earlier, policy, model, task=task, config=config, estimator=estimator)
-        _, e = estimate(k_batch, state, policy, model, task=task, config=config, estimator=estimator)
+        state = replicate_state(k_state, k_earlier, policy, model, problem=problem, config=config, estimator=estimator)
+        _, e = estimate(k_batch, state, policy, model, problem=problem, config=config, estimator=estimator)
         return ravel_pytree(e.grad)[0]
 
     fn = jax.jit(jax.vmap(one))
@@ -98,7 +101,7 @@ class Replicates(NamedTuple):
 
 
 def paired_replicate_gradients(
-    key: jax.Array, task: Problem, model, policy, config: RolloutConfig, estimators: dict, num_replicates: int,
+    key: jax.Array, problem: Problem, model, policy, config: RolloutConfig, estimators: dict, num_replicates: int,
     *, batch_size: int = 25,
 ) -> Replicates:
     """``num_replicates`` independent estimates of ∇θJ for each named :class:`Estimator`.
@@ -113,8 +116,8 @@ def paired_replicate_gradients(
         kp, ks, ke = jax.random.split(k, 3)
         grads, ks_lr = {}, {}
         for name, est in estimators.items():
-            state = replicate_state(kp, ks, policy, model, task=task, config=config, estimator=est)
-            _, e = estimate(ke, state, policy, model, task=task, config=config, estimator=est)
+            state = replicate_state(kp, ks, policy, model, problem=problem, config=config, estimator=est)
+            _, e = estimate(ke, state, policy, model, problem=problem, config=config, estimator=est)
             grads[name] = ravel_pytree(e.grad)[0]
             ks_lr[name] = e.diagnostics.k_lr
         return grads, ks_lr

@@ -25,11 +25,12 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from pipps.particles.forward import RolloutConfig, sample_noise
-from pipps.propagation.combine import ActionNodes, FixedWeight, action_nodes
-from pipps.propagation.config import compose, estimator
+from pipps.propagation.combine import ActionNodes, action_nodes
+from pipps.propagation.estimators import compose, estimator
 from pipps.propagation.cost_terms import plain_costs
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.propagation.parts import biw_lr, pathwise
+from pipps.propagation.weights import FixedWeight
 from pipps.stats import replicate_gradients, z_bound
 from pipps.systems.linear_gaussian import exact_objective, two_action_reference_system as two_action_system
 
@@ -41,8 +42,8 @@ def flat(tree):
 def run(system, est, P=16, key=3):
     task, model, policy = system
     cfg = RolloutConfig(num_particles=P)
-    st = init_estimator_state(jax.random.PRNGKey(9), policy, model, task=task, config=cfg, estimator=est)
-    return estimate(jax.random.PRNGKey(key), st, policy, model, task=task, config=cfg, estimator=est)
+    st = init_estimator_state(jax.random.PRNGKey(9), policy, model, problem=task, config=cfg, estimator=est)
+    return estimate(jax.random.PRNGKey(key), st, policy, model, problem=task, config=cfg, estimator=est)
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +55,7 @@ def test_tpx_is_the_composition_it_claims_and_takes_k_lr_settings():
     assert estimator("tpx") == compose(plain_costs(), pathwise(), biw_lr(), combiner=action_nodes("leave_one_out"))
     assert estimator("tp", combiner="action_nodes", k_lr="batch") == estimator("tpx", k_lr="batch")
     assert estimator("tpx", k_lr=0.25).combiner == ActionNodes(FixedWeight(0.25))
-    assert estimator("tpx", k_lr="previous").needs_previous_k and not estimator("tpx").needs_previous_k
+    assert estimator("tpx", k_lr="previous").cold_start and not estimator("tpx").cold_start
     with pytest.raises(ValueError, match="takes no messages setting"):
         estimator("tpx", messages="pathwise")
     with pytest.raises(ValueError, match="belong to the robust combiner"):
@@ -78,16 +79,19 @@ def test_previous_carries_one_weight_per_node(system):
     task, model, policy = system
     cfg = RolloutConfig(num_particles=16)
     est = estimator("tpx", k_lr="previous")
-    st = init_estimator_state(jax.random.PRNGKey(9), policy, model, task=task, config=cfg, estimator=est)
-    assert st.k_lr.shape == (task.horizon, 1 + task.action_dim)
-    st1, e1 = estimate(jax.random.PRNGKey(3), st, policy, model, task=task, config=cfg, estimator=est)
-    assert st1.k_lr.shape == st.k_lr.shape and np.all((np.asarray(st1.k_lr) >= 0) & (np.asarray(st1.k_lr) <= 1))
+    st = init_estimator_state(jax.random.PRNGKey(9), policy, model, problem=task, config=cfg, estimator=est)
+    assert st.combiner.k_batch.shape == st.combiner.has_previous.shape == (task.horizon, 1 + task.action_dim)
+    assert not np.any(np.asarray(st.combiner.has_previous))
+    st1, e1 = estimate(jax.random.PRNGKey(3), st, policy, model, problem=task, config=cfg, estimator=est)
+    k1 = np.asarray(st1.combiner.k_batch)
+    assert k1.shape == st.combiner.k_batch.shape and np.all((k1 >= 0) & (k1 <= 1)) and np.all(np.asarray(st1.combiner.has_previous))
+    np.testing.assert_array_equal(k1, np.asarray(e1.diagnostics.k_lr_batch))  # it remembers this batch's weights
     # on the first iteration "previous" uses this batch's weights: the same as "batch"
     _, eb = run(system, estimator("tpx", k_lr="batch"))
     np.testing.assert_array_equal(flat(e1.grad), flat(eb.grad))
     # the next iteration reads them
-    _, e2 = estimate(jax.random.PRNGKey(4), st1, policy, model, task=task, config=cfg, estimator=est)
-    np.testing.assert_allclose(np.asarray(e2.diagnostics.k_lr), np.asarray(st1.k_lr)[:, 1:].mean(1), rtol=1e-12)
+    _, e2 = estimate(jax.random.PRNGKey(4), st1, policy, model, problem=task, config=cfg, estimator=est)
+    np.testing.assert_allclose(np.asarray(e2.diagnostics.k_lr), k1[:, 1:].mean(1), rtol=1e-12)
 
 
 def _inverse_variance(v_rp, v_lr):
@@ -128,13 +132,14 @@ def test_batch_weights_match_a_direct_loop():
     task, model, policy = system = two_action_system(horizon=4)
     cfg = RolloutConfig(num_particles=6)
     est = estimator("tpx", k_lr="batch")
-    state = init_estimator_state(jax.random.PRNGKey(9), policy, model, task=task, config=cfg, estimator=est)
-    next_state, e = estimate(jax.random.PRNGKey(3), state, policy, model, task=task, config=cfg, estimator=est)
-    ref, weights = _direct_tpx(task, model, policy, sample_noise(jax.random.PRNGKey(3), task, cfg), np.asarray(state.baseline))
+    state = init_estimator_state(jax.random.PRNGKey(9), policy, model, problem=task, config=cfg, estimator=est)
+    _, e = estimate(jax.random.PRNGKey(3), state, policy, model, problem=task, config=cfg, estimator=est)
+    baseline = np.asarray(state.parts[1].mean_return)
+    ref, weights = _direct_tpx(task, model, policy, sample_noise(jax.random.PRNGKey(3), task, cfg), baseline)
     got = flat(e.grad)
     assert np.linalg.norm(ref) > 1e-3
     np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
-    np.testing.assert_allclose(np.asarray(next_state.k_lr), weights, rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(e.diagnostics.k_lr_batch), weights, rtol=1e-9)
     assert np.all((weights > 0) & (weights < 1))  # intermediate weights: every path matters
     assert np.max(np.abs(weights[:, 1] - weights[:, 2])) > 0.05  # the two action coordinates get their own
     # and total propagation with one weight per step misses the loop

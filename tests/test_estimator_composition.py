@@ -1,6 +1,8 @@
-"""Estimators as compositions of pieces (pipps.propagation.config; estimators.md §2–§9).
+"""Estimators as compositions of pieces (pipps.propagation.estimators; estimators.md §2–§9).
 
 * every named estimator, thesis variant and override is the one-line composition it claims to be;
+* each piece owns its state: the estimator's state is the tuple of its pieces' states, and only the
+  pieces with a memory (a "previous" baseline, a "previous" k_LR) hold one;
 * a combination that means nothing is refused, and the error names the problem;
 * structure is static (hashable, a jit static argument) and numbers are traced leaves: a new
   k_LR, γ or z does not recompile, and the traced number gives the closed-over estimate;
@@ -14,7 +16,9 @@ from jax.flatten_util import ravel_pytree
 
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.combine import inverse_variance, robust, single
-from pipps.propagation.config import ESTIMATORS, NAMED, compose, estimator, thesis_estimator
+from pipps.propagation.estimators import ESTIMATORS, NAMED, compose, estimator, thesis_estimator
+from pipps.propagation.pieces import EstimatorState, MeanReturn
+from pipps.propagation.weights import PreviousBatchWeight
 from pipps.propagation.cost_terms import density_estimation_costs, plain_costs, shaped_costs
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.propagation.parts import biw_lr, pathwise, plain_lr
@@ -34,8 +38,8 @@ def flat(tree):
 
 def one(system, est, key=3):
     task, model, policy = system
-    st = init_estimator_state(jax.random.PRNGKey(9), policy, model, task=task, config=CFG, estimator=est)
-    return estimate(jax.random.PRNGKey(key), st, policy, model, task=task, config=CFG, estimator=est)[1]
+    st = init_estimator_state(jax.random.PRNGKey(9), policy, model, problem=task, config=CFG, estimator=est)
+    return estimate(jax.random.PRNGKey(key), st, policy, model, problem=task, config=CFG, estimator=est)[1]
 
 
 @pytest.mark.parametrize(
@@ -72,14 +76,55 @@ def test_names_and_settings_are_the_compositions_they_claim(built, composed):
 
 
 def test_the_descriptive_views_follow_the_pieces():
-    assert NAMED == tuple(ESTIMATORS)
-    tp, rp, lr, dl = estimator("tp"), estimator("rp"), estimator("lr"), estimator("del", baseline="none")
-    assert tp.total_propagation and tp.pathwise and tp.likelihood_ratio and tp.k_lr == "leave_one_out"
-    assert rp.pathwise and not rp.likelihood_ratio and rp.k_lr is None and rp.baseline is None
-    assert lr.likelihood_ratio and not lr.pathwise and lr.needs_previous_baseline
-    assert dl.baseline == "none" and not dl.needs_previous_baseline and estimator("del").needs_previous_baseline
-    assert not estimator("lr_plain").needs_previous_baseline and not rp.needs_previous_baseline
-    assert estimator("tp", k_lr=0.25).k_lr == 0.25 and thesis_estimator("gtp").k_lr == "batch"
+    assert NAMED == tuple(ESTIMATORS) and all(e.name == n for n, e in ESTIMATORS.items())
+    tp, rp, lr = estimator("tp"), estimator("rp"), estimator("lr")
+    assert tp.pathwise and tp.likelihood_ratio and tp.kinds == ("pathwise", "likelihood_ratio")
+    assert tp.combiner.k_lr == "leave_one_out" and rp.combiner.k_lr is None
+    assert rp.pathwise and not rp.likelihood_ratio and lr.likelihood_ratio and not lr.pathwise
+    assert estimator("tp", k_lr=0.25).combiner.k_lr == 0.25 and thesis_estimator("gtp").combiner.k_lr == "batch"
+    assert tp.pieces == (tp.costs, *tp.parts, tp.combiner)
+
+
+def _state_shapes(system, est):
+    task, model, policy = system
+    state = init_estimator_state(jax.random.PRNGKey(9), policy, model, problem=task, config=CFG, estimator=est)
+    return jax.tree.map(lambda a: a.shape, state)
+
+
+@pytest.mark.parametrize(
+    "est, costs, parts, combiner, cold",
+    [
+        (estimator("rp"), (), ((),), (), False),
+        (estimator("lr_plain"), (), ((),), (), False),
+        (estimator("lr"), (), (MeanReturn((10,)),), (), False),
+        (thesis_estimator("lr"), (), ((),), (), False),
+        (estimator("tp"), (), ((), MeanReturn((10,))), (), False),
+        (thesis_estimator("tp"), (), ((), ()), (), False),
+        (estimator("tp", k_lr="previous"), (), ((), MeanReturn((10,))), PreviousBatchWeight((10,), (10,)), True),
+        (estimator("tp", k_lr="guarded", baseline="none"), (), ((), ()), PreviousBatchWeight((10,), (10,)), True),
+        (estimator("tp", k_lr="cross_fit"), (), ((), MeanReturn((10,))), (), False),
+        (estimator("del"), MeanReturn((10,)), ((),), (), False),
+        (estimator("del", baseline="none"), (), ((),), (), False),
+        (estimator("glr"), (), (MeanReturn((10,)),), (), False),
+    ],
+)
+def test_each_piece_owns_its_state(system, est, costs, parts, combiner, cold):
+    """The state is one entry per piece, each per step (T = 10); a piece without memory holds ()."""
+    assert _state_shapes(system, est) == EstimatorState(costs, parts, combiner)
+    assert est.cold_start == cold
+
+
+def test_the_extra_rollout_is_made_only_for_a_piece_that_asks(system):
+    """Only a "previous" baseline reads the extra rollout; an estimator without one traces no rollout."""
+    task, model, policy = system
+
+    def rollouts(est):
+        jaxpr = jax.make_jaxpr(lambda k: init_estimator_state(k, policy, model, problem=task, config=CFG, estimator=est))(
+            jax.random.PRNGKey(0))
+        return str(jaxpr).count("scan")
+
+    assert rollouts(estimator("rp")) == 0 and rollouts(thesis_estimator("tp")) == 0
+    assert rollouts(estimator("lr")) == 1
 
 
 @pytest.mark.parametrize(
@@ -117,17 +162,17 @@ def test_a_meaningless_combination_is_refused_by_name(build, match):
 
 def test_numbers_are_traced_and_do_not_recompile(system):
     task, model, policy = system
-    st = init_estimator_state(jax.random.PRNGKey(9), policy, model, task=task, config=CFG, estimator=estimator("tp"))
+    st = init_estimator_state(jax.random.PRNGKey(9), policy, model, problem=task, config=CFG, estimator=estimator("tp"))
 
     @jax.jit
     def grad(est, key):
-        return ravel_pytree(estimate(key, st, policy, model, task=task, config=CFG, estimator=est)[1].grad)[0]
+        return ravel_pytree(estimate(key, st, policy, model, problem=task, config=CFG, estimator=est)[1].grad)[0]
 
     key = jax.random.PRNGKey(3)
     g3, g7 = grad(estimator("tp", k_lr=0.3), key), grad(estimator("tp", k_lr=0.7), key)
     assert grad._cache_size() == 1
     assert not np.allclose(g3, g7)
-    closed = estimate(key, st, policy, model, task=task, config=CFG, estimator=estimator("tp", k_lr=0.7))[1].grad
+    closed = estimate(key, st, policy, model, problem=task, config=CFG, estimator=estimator("tp", k_lr=0.7))[1].grad
     np.testing.assert_allclose(np.asarray(g7), flat(closed), rtol=1e-12, atol=1e-15)
     grad(estimator("tp", combiner="robust", robust_gamma=0.1), key)
     grad(estimator("tp", combiner="robust", robust_gamma=3.0, robust_z=0.5), key)
@@ -139,7 +184,7 @@ def test_structure_is_a_static_argument():
 
     def f(x, est):
         calls.append(est)
-        return x * (2.0 if est.total_propagation else 1.0)
+        return x * (2.0 if est.combiner.num_parts == 2 else 1.0)
 
     fj = jax.jit(f, static_argnames="est")
     fj(1.0, est=estimator("tp", k_lr=0.3))

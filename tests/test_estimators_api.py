@@ -9,7 +9,7 @@ from jax.flatten_util import ravel_pytree
 
 from pipps.optimizers.normalized import normalized_momentum
 from pipps.particles.forward import RolloutConfig
-from pipps.propagation.config import estimator
+from pipps.propagation.estimators import estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.propagation.update import init_policy_opt_state, make_policy_optimizer, make_policy_update
 from pipps.systems.linear_gaussian import reference_system
@@ -32,9 +32,9 @@ def test_vmap_over_seeds_equals_a_loop(system):
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     # a leading axis of independent experiments: keys, estimator states and policies
     policies = jax.tree.map(lambda p: jnp.stack([p, 1.1 * p, 0.9 * p]), policy)
-    init = lambda k, p: init_estimator_state(k, p, model, task=task, config=CFG, estimator=est)  # noqa: E731
+    init = lambda k, p: init_estimator_state(k, p, model, problem=task, config=CFG, estimator=est)  # noqa: E731
     states = jax.vmap(init)(keys, policies)
-    run = lambda k, s, p: estimate(k, s, p, model, task=task, config=CFG, estimator=est)[1].grad  # noqa: E731
+    run = lambda k, s, p: estimate(k, s, p, model, problem=task, config=CFG, estimator=est)[1].grad  # noqa: E731
     batched = jax.jit(jax.vmap(run))(keys, states, policies)
     for i in range(3):
         pol_i = jax.tree.map(lambda a: a[i], policies)
@@ -46,7 +46,7 @@ def test_update_step_does_not_recompile(system):
     task, model, policy = system
     est, opt = estimator("tp"), normalized_momentum()
     step = make_policy_update(task, CFG, est, opt)
-    st = init_policy_opt_state(jax.random.PRNGKey(0), policy, model, task=task, config=CFG, estimator=est, optimizer=opt)
+    st = init_policy_opt_state(jax.random.PRNGKey(0), policy, model, problem=task, config=CFG, estimator=est, optimizer=opt)
     st, _ = step(jax.random.PRNGKey(1), st, model)
     st, _ = step(jax.random.PRNGKey(2), st, model)
     model2 = jax.tree.map(lambda a: 1.01 * a, model)  # a retrained model of the same shapes
@@ -57,13 +57,13 @@ def test_update_step_does_not_recompile(system):
 def test_fixed_seed_is_deterministic_and_fresh_keys_are_not(system):
     task, model, policy = system
     est, opt = estimator("rp"), normalized_momentum(1e-2)
-    st = init_policy_opt_state(jax.random.PRNGKey(0), policy, model, task=task, config=CFG, estimator=est, optimizer=opt)
+    st = init_policy_opt_state(jax.random.PRNGKey(0), policy, model, problem=task, config=CFG, estimator=est, optimizer=opt)
     fixed = make_policy_optimizer(task, CFG, est, opt, fixed_seed=True)
     fresh = make_policy_optimizer(task, CFG, est, opt, fixed_seed=False)
     _, info_f = fixed(jax.random.PRNGKey(5), st, model, num_steps=3)
     _, info_r = fresh(jax.random.PRNGKey(5), st, model, num_steps=3)
     # fixed seed: the same noise, so the objective changes only through θ and is smooth in it
-    e = lambda k, p: estimate(k, st.estimator_state, p, model, task=task, config=CFG, estimator=est)[1].value  # noqa: E731
+    e = lambda k, p: estimate(k, st.estimator_state, p, model, problem=task, config=CFG, estimator=est)[1].value  # noqa: E731
     assert float(info_f.value[0]) == pytest.approx(float(e(jax.random.PRNGKey(5), policy)), rel=1e-14)
     assert float(info_r.value[1]) != float(info_f.value[1])
 
@@ -93,7 +93,7 @@ def test_optimizing_on_the_model_lowers_the_exact_objective(system):
 
     task, model, policy = system
     est, opt = estimator("tp"), normalized_momentum(5e-3, 0.9)
-    st = init_policy_opt_state(jax.random.PRNGKey(0), policy, model, task=task, config=CFG, estimator=est, optimizer=opt)
+    st = init_policy_opt_state(jax.random.PRNGKey(0), policy, model, problem=task, config=CFG, estimator=est, optimizer=opt)
     run = make_policy_optimizer(task, CFG, est, opt)
     new, info = run(jax.random.PRNGKey(1), st, model, num_steps=200)
     assert not np.any(np.asarray(info.skipped))
@@ -113,7 +113,7 @@ def test_fixed_seed_quasi_newton_minimises_the_fixed_objective(system, resamplin
     cfg = RolloutConfig(num_particles=32, resampling=resampling)
     key = jax.random.PRNGKey(11)
     qn = QuasiNewtonConfig(length=40, max_evals_per_linesearch=20)
-    run = jax.jit(lambda p: optimize_fixed_seed(key, p, model, task=task, config=cfg, qn_config=qn))
+    run = jax.jit(lambda p: optimize_fixed_seed(key, p, model, problem=task, config=cfg, qn_config=qn))
     new, trace = run(policy)
     noise = sample_noise(key, task, cfg)
     J = lambda p: reparameterized_objective(task, p, model, noise, cfg)  # noqa: E731

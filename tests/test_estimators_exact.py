@@ -17,7 +17,7 @@ from pipps.gp import fit, make_data
 from pipps.particles.forward import RolloutConfig, particle_rollout, reparameterized_objective, sample_noise
 from pipps.policies import init_rbf_policy
 from pipps.propagation import cost_terms, lr
-from pipps.propagation.config import estimator, thesis_estimator
+from pipps.propagation.estimators import estimator, thesis_estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.rollout import rollout, training_pairs
 from pipps.tasks.presets import make_task
@@ -46,8 +46,8 @@ def flat(tree):
 
 def run(setup, est, cfg, key=3, state_key=9):
     task, post, pol = setup
-    st = init_estimator_state(jax.random.PRNGKey(state_key), pol, post, task=task, config=cfg, estimator=est)
-    _, e = estimate(jax.random.PRNGKey(key), st, pol, post, task=task, config=cfg, estimator=est)
+    st = init_estimator_state(jax.random.PRNGKey(state_key), pol, post, problem=task, config=cfg, estimator=est)
+    _, e = estimate(jax.random.PRNGKey(key), st, pol, post, problem=task, config=cfg, estimator=est)
     return e
 
 
@@ -210,7 +210,7 @@ def test_estimator_configuration_errors_name_the_problem():
         RolloutConfig(num_particles=0)
     with pytest.raises(ValueError, match="noise_multiplier"):
         RolloutConfig(noise_multiplier=-1.0)
-    assert thesis_estimator("tp").baseline == "thesis" and thesis_estimator("tp").k_lr == "batch"
+    assert thesis_estimator("tp").parts[1].baseline == "thesis" and thesis_estimator("tp").combiner.k_lr == "batch"
 
 
 def test_float32_variance_product_stays_within_its_rounding_bound(setup):

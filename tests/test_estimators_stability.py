@@ -18,7 +18,7 @@ from pipps.optimizers.normalized import normalized_momentum, normalized_term
 from pipps.particles.forward import RolloutConfig
 from pipps.policies import LinearPolicy
 from pipps.propagation.combine import inverse_variance_k
-from pipps.propagation.config import estimator
+from pipps.propagation.estimators import estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.propagation.update import init_policy_opt_state, make_policy_update
 from pipps.systems.linear_gaussian import make_linear_gaussian_task
@@ -57,15 +57,15 @@ def setup(model, horizon, init_cov=0.01, target=0.0, P=64):
 
 def one_estimate(task, policy, model, cfg, name, **kw):
     est = estimator(name, **kw)
-    st = init_estimator_state(jax.random.PRNGKey(1), policy, model, task=task, config=cfg, estimator=est)
-    _, e = estimate(jax.random.PRNGKey(2), st, policy, model, task=task, config=cfg, estimator=est)
+    st = init_estimator_state(jax.random.PRNGKey(1), policy, model, problem=task, config=cfg, estimator=est)
+    _, e = estimate(jax.random.PRNGKey(2), st, policy, model, problem=task, config=cfg, estimator=est)
     return e
 
 
 def one_update(task, policy, model, cfg, name, **kw):
     est = estimator(name, **kw)
     opt = normalized_momentum(1e-2, 0.9)
-    st = init_policy_opt_state(jax.random.PRNGKey(1), policy, model, task=task, config=cfg, estimator=est, optimizer=opt)
+    st = init_policy_opt_state(jax.random.PRNGKey(1), policy, model, problem=task, config=cfg, estimator=est, optimizer=opt)
     step = make_policy_update(task, cfg, est, opt)
     new, info = step(jax.random.PRNGKey(2), st, model)
     for leaf in jax.tree.leaves(new):

@@ -41,7 +41,7 @@ from jax.flatten_util import ravel_pytree
 from jax.tree_util import register_dataclass
 
 from pipps.particles.forward import RolloutConfig, reparameterized_objective, sample_noise
-from pipps.propagation.config import estimator, thesis_estimator
+from pipps.propagation.estimators import estimator, thesis_estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.stats import replicate_gradients, z_bound
 from pipps.systems import exact_objective, reference_system
@@ -285,8 +285,8 @@ def test_rp_follows_state_dependent_noise_like_finite_differences():
     @jax.jit
     def rp_sweep(m):
         est = estimator("rp")
-        state = init_estimator_state(jax.random.PRNGKey(1), policy, m, task=task, config=cfg, estimator=est)
-        _, e = estimate(key, state, policy, m, task=task, config=cfg, estimator=est)
+        state = init_estimator_state(jax.random.PRNGKey(1), policy, m, problem=task, config=cfg, estimator=est)
+        _, e = estimate(key, state, policy, m, problem=task, config=cfg, estimator=est)
         return ravel_pytree(e.grad)[0]
 
     fd = central_differences(model, 1e-4)  # the forward pass is the same for `held`

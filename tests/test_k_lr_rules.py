@@ -38,21 +38,20 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from pipps.particles.forward import ParticleRecord, RolloutConfig, particle_rollout, sample_noise
-from pipps.propagation.backward import PreviousIteration, backward_sweep
-from pipps.propagation.combine import (
+from pipps.propagation.backward import backward_sweep
+from pipps.propagation.combine import InverseVariance, _total_propagation, inverse_variance
+from pipps.propagation.cost_terms import plain_costs
+from pipps.propagation.estimate import estimate, init_estimator_state
+from pipps.propagation.estimators import compose, estimator, thesis_estimator
+from pipps.propagation.parts import biw_lr, pathwise
+from pipps.propagation.schedules import CrossFitted, cross_fitted
+from pipps.propagation.weights import (
     FixedWeight,
     GuardedWeight,
-    InverseVariance,
-    _total_propagation,
+    PreviousBatchWeight,
     leave_one_out_statistics,
     split_statistics,
 )
-from pipps.propagation.combine import inverse_variance
-from pipps.propagation.config import compose, estimator, thesis_estimator
-from pipps.propagation.cost_terms import plain_costs
-from pipps.propagation.parts import biw_lr, pathwise
-from pipps.propagation.cross_fit import CrossFitted
-from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.stats import log_variance_ratio, paired_replicate_gradients, replicate_gradients, z_bound
 from pipps.systems import exact_objective, reference_system
 from pipps.systems.chaotic import kicked_rotor_system
@@ -94,22 +93,25 @@ def test_split_statistics_are_the_other_halfs():
 class _SameForEveryParticle:
     """A per-particle source whose weights are all ``k`` (for the (P, 1) path of the combination)."""
 
-    uses_previous_k = False
+    cold_start = False
+    k_lr = "same_for_every_particle"
 
     def __init__(self, k):
         self.k = k
 
-    def weight(self, rule, g_rp, g_lr, k_batch, k_previous, has_previous):
-        return jnp.full(g_rp.shape[0], self.k, g_rp.dtype)
+    def init(self, context, weight_shape):
+        return ()
+
+    def weight(self, state, rule, g_rp, g_lr, k_batch):
+        return state, jnp.full(g_rp.shape[0], self.k, g_rp.dtype)
 
 
 def test_a_per_particle_weight_equal_for_all_is_the_scalar_weight_bit_for_bit():
     rng = np.random.default_rng(1)
     g = jnp.asarray(rng.normal(size=(2, 9, 4)))
     messages = [jnp.asarray(rng.normal(size=(9, 3))) for _ in range(2)]
-    args = (g, messages, jnp.asarray(0.2), jnp.asarray(True))
-    scalar = _total_propagation(InverseVariance(FixedWeight(0.3)), *args)
-    per_particle = _total_propagation(InverseVariance(_SameForEveryParticle(0.3)), *args)
+    _, scalar = _total_propagation(InverseVariance(FixedWeight(0.3)), (), g, messages)
+    _, per_particle = _total_propagation(InverseVariance(_SameForEveryParticle(0.3)), (), g, messages)
     for name in ("gradient", "message", "k_batch", "variances"):
         for x, y in zip(jax.tree.leaves(getattr(scalar, name)), jax.tree.leaves(getattr(per_particle, name))):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=name)
@@ -118,12 +120,17 @@ def test_a_per_particle_weight_equal_for_all_is_the_scalar_weight_bit_for_bit():
 
 def test_guarded_is_previous_below_its_threshold_and_lr_above():
     src = GuardedWeight(0.99)
-    k = lambda kb, kp, has: float(src.choose(jnp.asarray(kb), jnp.asarray(kp), jnp.asarray(has)))  # noqa: E731
+
+    def k(kb, kp, has):
+        state, used = src.weight(PreviousBatchWeight(jnp.asarray(kp), jnp.asarray(has)), None, None, None, jnp.asarray(kb))
+        assert float(state.k_batch) == kb and bool(state.has_previous)  # it remembers this batch's weight
+        return float(used)
+
     assert k(0.5, 0.2, True) == 0.2
     assert k(0.989, 0.2, True) == 0.2
     assert k(0.99, 0.2, True) == 1.0 and k(0.999999, 0.0, True) == 1.0
     assert k(0.5, 0.2, False) == 0.5  # first iteration: this batch's, as "previous"
-    assert estimator("tp", k_lr="guarded").needs_previous_k and not estimator("tp", k_lr="leave_one_out").needs_previous_k
+    assert estimator("tp", k_lr="guarded").cold_start and not estimator("tp", k_lr="leave_one_out").cold_start
 
 
 # -- a weight per particle, through the whole sweep: a direct loop of estimators.md §4 ------------------
@@ -182,10 +189,10 @@ def test_a_weight_per_particle_matches_a_direct_loop_through_the_messages(rule, 
     cfg = RolloutConfig(num_particles=6, model_variance=False)
     est = compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance(rule, messages))
     assert messages == "pathwise" or est == estimator("tp", k_lr=rule)
-    state = init_estimator_state(jax.random.PRNGKey(9), policy, model, task=task, config=cfg, estimator=est)
-    _, e = estimate(jax.random.PRNGKey(3), state, policy, model, task=task, config=cfg, estimator=est)
+    state = init_estimator_state(jax.random.PRNGKey(9), policy, model, problem=task, config=cfg, estimator=est)
+    _, e = estimate(jax.random.PRNGKey(3), state, policy, model, problem=task, config=cfg, estimator=est)
     noise = sample_noise(jax.random.PRNGKey(3), task, cfg)
-    ref = _direct_tp_per_particle(task, model, policy, noise, others, np.asarray(state.baseline), messages == "pathwise")
+    ref = _direct_tp_per_particle(task, model, policy, noise, others, np.asarray(state.parts[1].mean_return), messages == "pathwise")
     got = np.asarray(ravel_pytree(e.grad)[0])
     assert np.linalg.norm(ref) > 1e-3
     np.testing.assert_allclose(got, ref, rtol=1e-9, atol=1e-12 * np.abs(ref).max())
@@ -206,22 +213,28 @@ def test_cross_fit_is_each_half_swept_with_the_other_halfs_pilot_weights():
     task, model, policy = reference_system(0.3, "saturating")
     cfg = RolloutConfig(num_particles=16)
     est = estimator("tp", k_lr="cross_fit")
-    assert isinstance(est, CrossFitted) and est.pilot == "leave_one_out" and not est.needs_previous_k
-    state = init_estimator_state(jax.random.PRNGKey(2), policy, model, task=task, config=cfg, estimator=est)
+    assert est == cross_fitted(estimator("tp", k_lr="batch")) and est.schedule == CrossFitted("leave_one_out")
+    assert not est.cold_start
+    state = init_estimator_state(jax.random.PRNGKey(2), policy, model, problem=task, config=cfg, estimator=est)
     record = particle_rollout(task, policy, model, sample_noise(jax.random.PRNGKey(5), task, cfg), cfg, jacobian=True)
-    prev = state.previous()
-    got = np.asarray(est.sweep(task, policy, record, cfg, prev).contributions)
+    next_state, out = est.schedule.sweep(task, policy, record, cfg, est, state)
+    got = np.asarray(out.contributions)
 
     pilot_est, final_est = estimator("tp", k_lr="leave_one_out"), estimator("tp", k_lr="previous")
-    k_pilot = [backward_sweep(task, policy, _half(record, h), cfg, pilot_est, prev).diagnostics.k_lr_batch for h in (0, 1)]
+    k_pilot = [backward_sweep(task, policy, _half(record, h), cfg, pilot_est, state)[1].diagnostics.k_lr_batch for h in (0, 1)]
+    baselines = []
     for h in (0, 1):
-        other = PreviousIteration(prev.baseline, k_pilot[1 - h], jnp.asarray(True))
-        want = np.asarray(backward_sweep(task, policy, _half(record, h), cfg, final_est, other).contributions)
+        other = state._replace(combiner=PreviousBatchWeight(k_pilot[1 - h], jnp.ones(k_pilot[1 - h].shape, bool)))
+        half_state, half = backward_sweep(task, policy, _half(record, h), cfg, final_est, other)
+        want = np.asarray(half.contributions)
         np.testing.assert_allclose(got[h * 8 : (h + 1) * 8], want, rtol=1e-12, atol=1e-14 * np.abs(want).max())
+        baselines.append(np.asarray(half_state.parts[1].mean_return))
+    # the next "previous" baseline is the mean return over all particles: the halves' average
+    np.testing.assert_allclose(np.asarray(next_state.parts[1].mean_return), np.mean(baselines, axis=0), rtol=1e-14)
     k0, k1 = (np.asarray(k) for k in k_pilot)
     assert np.all((k0 > 0) & (k0 < 1)) and not np.allclose(k0, k1)  # the halves' weights really differ
 
-    _, e = estimate(jax.random.PRNGKey(5), state, policy, model, task=task, config=cfg, estimator=est)
+    _, e = estimate(jax.random.PRNGKey(5), state, policy, model, problem=task, config=cfg, estimator=est)
     np.testing.assert_allclose(np.asarray(ravel_pytree(e.grad)[0]), got.mean(0), rtol=1e-12)
 
 
@@ -229,11 +242,13 @@ def test_cross_fit_refuses_what_it_cannot_split():
     task, model, policy = reference_system(0.3, "saturating")
     cfg = RolloutConfig(num_particles=9)
     est = estimator("tp", k_lr="cross_fit")
-    state = init_estimator_state(jax.random.PRNGKey(2), policy, model, task=task, config=cfg, estimator=est)
+    state = init_estimator_state(jax.random.PRNGKey(2), policy, model, problem=task, config=cfg, estimator=est)
     with pytest.raises(ValueError, match="P must be even"):
-        estimate(jax.random.PRNGKey(5), state, policy, model, task=task, config=cfg, estimator=est)
+        estimate(jax.random.PRNGKey(5), state, policy, model, problem=task, config=cfg, estimator=est)
     with pytest.raises(ValueError, match="total propagation"):
-        CrossFitted(estimator("lr"))
+        cross_fitted(estimator("lr"))
+    with pytest.raises(ValueError, match="pilot must be one of"):
+        cross_fitted(estimator("tp"), "previous")
 
 
 # -- unbiasedness against the exact gradient (linear-Gaussian reference system) --------------------------
@@ -244,7 +259,7 @@ R_UNBIASED = 2000
 # the comparisons of this family: (name, estimator, P); each must pass, with every coordinate's |z|
 UNBIASED = [
     ("cross_fit", estimator("tp", k_lr="cross_fit"), 30),
-    ("cross_fit_batch_pilot", CrossFitted(estimator("tp", k_lr="batch"), "batch"), 30),
+    ("cross_fit_batch_pilot", cross_fitted(estimator("tp", k_lr="batch"), "batch"), 30),
 ]
 Z_BOUND = z_bound(N_THETA * (len(UNBIASED) + 2), ALPHA)  # + the paired cross-fit and RP-message comparisons below
 RP_MESSAGES = compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance("previous", "pathwise"))
@@ -275,7 +290,7 @@ def _paired_lg(P: int):
     ests = {n: estimator("tp", k_lr=n) for n in ("previous", "batch", "leave_one_out", "cross_fit")}
     ests["rp_messages"] = RP_MESSAGES
     run = jax.jit(functools.partial(
-        paired_replicate_gradients, task=task, model=model, policy=policy, config=RolloutConfig(num_particles=P),
+        paired_replicate_gradients, problem=task, model=model, policy=policy, config=RolloutConfig(num_particles=P),
         estimators=ests, num_replicates=R_PAIRED, batch_size=200,
     ))
     g = {n: np.asarray(v) for n, v in run(jax.random.PRNGKey(303)).grad.items()}
@@ -327,7 +342,7 @@ def _chaos():
         "cross_fit": estimator("tp", k_lr="cross_fit"),
     }
     run = jax.jit(functools.partial(
-        paired_replicate_gradients, task=task, model=model, policy=policy,
+        paired_replicate_gradients, problem=task, model=model, policy=policy,
         config=RolloutConfig(num_particles=CHAOS_P, model_variance=False), estimators=ests, num_replicates=CHAOS_R,
     ))
     return {n: np.asarray(g) for n, g in run(jax.random.PRNGKey(77)).grad.items()}
@@ -381,7 +396,7 @@ def test_pathwise_messages_bring_tp_below_rp_in_the_smooth_setting():
     task, model, policy = kicked_rotor_system("smooth")
     ests = {"rp": estimator("rp"), "rp_messages": RP_MESSAGES}
     run = jax.jit(functools.partial(
-        paired_replicate_gradients, task=task, model=model, policy=policy,
+        paired_replicate_gradients, problem=task, model=model, policy=policy,
         config=RolloutConfig(num_particles=30, model_variance=False), estimators=ests, num_replicates=1000,
     ))
     g = {n: np.asarray(v) for n, v in run(jax.random.PRNGKey(78)).grad.items()}

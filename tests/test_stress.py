@@ -36,7 +36,7 @@ from pipps.particles.forward import RolloutConfig, particle_rollout, sample_nois
 from pipps.pilco import PolicySearchConfig, objective, optimize_policy
 from pipps.policies import init_rbf_policy
 from pipps.propagation.combine import inverse_variance_k
-from pipps.propagation.config import estimator
+from pipps.propagation.estimators import estimator
 from pipps.propagation.update import init_policy_opt_state, make_policy_update
 from pipps.rollout import rollout, training_pairs
 from pipps.tasks.presets import make_task
@@ -127,7 +127,7 @@ def _programs(name: str, cfg: RolloutConfig):
     """(estimator, jitted init, jitted step) per (estimator, rollout config): compiled once per shape."""
     est = built(name)
     opt = normalized_momentum(1e-2, 0.9)
-    init = jax.jit(functools.partial(init_policy_opt_state, task=TASK, config=cfg, estimator=est, optimizer=opt))
+    init = jax.jit(functools.partial(init_policy_opt_state, problem=TASK, config=cfg, estimator=est, optimizer=opt))
     return est, init, make_policy_update(TASK, cfg, est, opt)
 
 

@@ -1,9 +1,10 @@
 """The custom backward pass: RP, LR, BIW-LR, TP, Gaussian shaping and DEL (thesis Alg. 5–6)."""
 
-from pipps.propagation.config import Estimator, estimator, thesis_estimator
+from pipps.propagation.estimators import ESTIMATORS, Estimator, compose, estimator, thesis_estimator
 from pipps.propagation.fixed_seed import optimize_fixed_seed
-from pipps.propagation.estimate import Estimate, EstimatorState, estimate, init_estimator_state
-from pipps.propagation.backward import StepDiagnostics
+from pipps.propagation.estimate import Estimate, estimate, init_estimator_state
+from pipps.propagation.pieces import EstimatorState, StepDiagnostics
+from pipps.propagation.schedules import cross_fitted
 from pipps.propagation.update import (
     PolicyOptState,
     UpdateInfo,
@@ -14,7 +15,7 @@ from pipps.propagation.update import (
 )
 
 __all__ = [
-    "Estimate", "Estimator", "EstimatorState", "PolicyOptState", "StepDiagnostics", "UpdateInfo",
-    "estimate", "estimator", "init_estimator_state", "init_policy_opt_state", "make_policy_optimizer",
-    "make_policy_update", "optimize_fixed_seed", "policy_update", "thesis_estimator",
+    "ESTIMATORS", "Estimate", "Estimator", "EstimatorState", "PolicyOptState", "StepDiagnostics", "UpdateInfo",
+    "compose", "cross_fitted", "estimate", "estimator", "init_estimator_state", "init_policy_opt_state",
+    "make_policy_optimizer", "make_policy_update", "optimize_fixed_seed", "policy_update", "thesis_estimator",
 ]

@@ -15,26 +15,21 @@ built by :func:`plain_costs`, :func:`shaped_costs` and :func:`density_estimation
 
 Per-particle returns are summed without the 1/P; the sweep divides at the end, so that a
 particle's gradient is ``∂G_i/∂θ`` and the estimate is their mean.
+
+Each is a :class:`~pipps.propagation.pieces.CostTerms`. DEL with the "previous" baseline keeps the
+previous iteration's mean return per step as its state (:class:`~pipps.propagation.pieces.MeanReturn`);
+the others have none.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import jax
 import jax.numpy as jnp
 
+from pipps.propagation.pieces import InitContext, MeanReturn, Stateless, StepCosts
 from pipps.propagation.strategy import strategy
 
 DEL_BASELINES = ("previous", "none")
-
-
-class StepCosts(NamedTuple):
-    """One step's cost terms, per particle."""
-
-    cost: jax.Array  # c_i, added to the returns G_i, (P,)
-    gradient: jax.Array | None  # ∂c_i/∂x_i started down the pathwise chain, (P, D); None if not asked for
-    objective: jax.Array  # the step's term of the objective being differentiated
 
 
 def plain_terms(cost, x: jax.Array, c: jax.Array, *, gradient: bool):
@@ -91,51 +86,65 @@ def del_gradient(x: jax.Array, returns: jax.Array, baseline: jax.Array, jitter: 
 
 
 @strategy
-class PlainCosts:
+class PlainCosts(Stateless):
     """The particles' own costs ``c(x_i)`` and ``∇c(x_i)`` (estimators.md §1–§4)."""
 
     feeds_likelihood_ratio = True
-    uses_previous_baseline = False
 
-    def step(self, cost, x, c, returns_next, previous_baseline, *, gradient: bool) -> StepCosts:
-        del returns_next, previous_baseline
-        return StepCosts(*plain_terms(cost, x, c, gradient=gradient))
+    def returns(self, cost, x, c):
+        del cost, x
+        return c
+
+    def step(self, state, cost, x, c, returns_next, *, gradient: bool) -> tuple[tuple, StepCosts]:
+        del returns_next
+        return state, StepCosts(*plain_terms(cost, x, c, gradient=gradient))
 
 
 @strategy
-class ShapedCosts:
+class ShapedCosts(Stateless):
     """Gaussian shaping (estimators.md §5): ``g_i`` for the returns, ``P·dĒ/dx_i`` for the pathwise chain."""
 
     feeds_likelihood_ratio = True
-    uses_previous_baseline = False
 
-    def step(self, cost, x, c, returns_next, previous_baseline, *, gradient: bool) -> StepCosts:
-        del c, returns_next, previous_baseline
-        return StepCosts(*shaping_terms(cost, x, lr_costs=True, gradient=gradient))
+    def returns(self, cost, x, c):
+        del c
+        return shaping_terms(cost, x, lr_costs=True, gradient=False)[0]
+
+    def step(self, state, cost, x, c, returns_next, *, gradient: bool) -> tuple[tuple, StepCosts]:
+        del c, returns_next
+        return state, StepCosts(*shaping_terms(cost, x, lr_costs=True, gradient=gradient))
 
 
 @strategy
 class DensityEstimationCosts:
-    """DEL (estimators.md §6): plain costs for the returns, ``P·∂S/∂x_i`` in place of ``∇c(x_i)``.
+    """DEL (estimators.md §6): the particles' own costs for the returns and the surrogate's
+    ``P·∂S/∂x_i`` instead of ``∇c(x_i)``.
 
-    ``baseline``: ``b_t`` of the surrogate, "previous" (the previous iteration's mean return) or "none".
+    ``baseline``: ``b_t`` of the surrogate, "previous" (the previous iteration's mean return, the
+    state) or "none".
     """
 
     baseline: str = "previous"
 
     feeds_likelihood_ratio = False
+    cold_start = False  # the first iteration's baseline comes from the extra rollout
 
-    @property
-    def uses_previous_baseline(self) -> bool:
-        return self.baseline == "previous"
+    def init(self, context: InitContext) -> MeanReturn | tuple:
+        return MeanReturn(context.mean_returns()) if self.baseline == "previous" else ()
 
-    def step(self, cost, x, c, returns_next, previous_baseline, *, gradient: bool) -> StepCosts:
+    def returns(self, cost, x, c):
+        del cost, x
+        return c
+
+    def step(self, state, cost, x, c, returns_next, *, gradient: bool) -> tuple[MeanReturn | tuple, StepCosts]:
         del cost
+        returns = returns_next + c
         dc = None
         if gradient:
-            b = previous_baseline if self.baseline == "previous" else 0.0
-            dc = del_gradient(x, returns_next + c, b)
-        return StepCosts(c, dc, jnp.mean(c))
+            b = state.mean_return if self.baseline == "previous" else 0.0
+            dc = del_gradient(x, returns, b)
+        next_state = MeanReturn(jnp.mean(returns)) if self.baseline == "previous" else ()
+        return next_state, StepCosts(c, dc, jnp.mean(c))
 
 
 def plain_costs() -> PlainCosts:

@@ -13,7 +13,7 @@ import jax
 
 from pipps.optimizers.quasi_newton import QuasiNewtonConfig, QuasiNewtonTrace, minimize
 from pipps.particles.forward import RolloutConfig
-from pipps.propagation.config import estimator
+from pipps.propagation.estimators import estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.tasks.base import Problem
 
@@ -23,20 +23,20 @@ def optimize_fixed_seed(
     policy,
     model,
     *,
-    task: Problem,
+    problem: Problem,
     config: RolloutConfig,
     qn_config: QuasiNewtonConfig = QuasiNewtonConfig(length=150, max_evals_per_linesearch=30),
 ):
     """Minimise the fixed-seed particle objective; returns ``(policy, QuasiNewtonTrace)``.
 
     The default budget is PILCO's cart-pole one (150 line searches, ≤ 30 evaluations each).
-    Pure and jittable (static: ``task``, ``config``, ``qn_config``).
+    Pure and jittable (static: ``problem``, ``config``, ``qn_config``).
     """
     est = estimator("rp")
-    state = init_estimator_state(key, policy, model, task=task, config=config, estimator=est)
+    state = init_estimator_state(key, policy, model, problem=problem, config=config, estimator=est)
 
     def value_and_grad(p):
-        _, e = estimate(key, state, p, model, task=task, config=config, estimator=est)
+        _, e = estimate(key, state, p, model, problem=problem, config=config, estimator=est)
         return e.value, e.grad
 
     return minimize(None, policy, qn_config, value_and_grad=value_and_grad)

@@ -1,6 +1,6 @@
 """Gradient parts: each turns one step's particles into a ζ-cotangent γ_{i,t} (estimators.md §2–§4).
 
-A part is a strategy piece with a ``kind`` and ``zeta(inputs, config) -> ZetaGrad``:
+A part is a strategy piece with a ``kind`` and ``zeta(state, inputs, config) -> (state, ZetaGrad)``:
 
 * :func:`pathwise` (RP, §2; step 2 of §4): ``γ^RP_i = a_i ∂x_{i,t}/∂ζ_{i,t}`` with
   ``a_i = ∂G_i/∂x_{i,t} + ∂c_i/∂x_{i,t}`` — for ``x = μ + s ⊙ ε`` that is ``(a, a ⊙ ε)``, for
@@ -10,51 +10,21 @@ A part is a strategy piece with a ``kind`` and ``zeta(inputs, config) -> ZetaGra
 * :func:`plain_lr` (§3): no batch weighting, the leave-one-out baseline.
 
 The sweep carries every part's γ to θ through the same direct path and hands the per-particle
-θ-gradients to the combiner (:mod:`~pipps.propagation.combine`).
+θ-gradients to the combiner (:mod:`~pipps.propagation.combine`). Each is a
+:class:`~pipps.propagation.pieces.GradientPart`; BIW-LR with the "previous" baseline keeps the
+previous iteration's mean return per step as its state (:class:`~pipps.propagation.pieces.MeanReturn`).
 """
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
-
 import jax
+import jax.numpy as jnp
 
 from pipps.particles.forward import RolloutConfig, gaussian_resample
 from pipps.propagation import lr
 from pipps.propagation.lr import BASELINES, ZetaGrad
+from pipps.propagation.pieces import LIKELIHOOD_RATIO, PATHWISE, InitContext, MeanReturn, Stateless, StepInputs
 from pipps.propagation.strategy import strategy
-
-PATHWISE = "pathwise"
-LIKELIHOOD_RATIO = "likelihood_ratio"
-
-
-class StepInputs(NamedTuple):
-    """What a gradient part reads at step t of the sweep, per particle."""
-
-    x: jax.Array  # x_{i,t}, (P, D)
-    mean: jax.Array  # μ_{i,t}, (P, D)
-    std: jax.Array  # s_{i,t}, (P, D)
-    eps: jax.Array  # ε_{i,t}, (P, D)
-    returns: jax.Array  # G_{i,t}, (P,)
-    previous_baseline: jax.Array  # b_t of the previous iteration, scalar
-    carried: jax.Array  # ∂G_i/∂x_{i,t} passed back from step t+1, (P, D)
-    cost_gradient: jax.Array | None  # the cost terms' ∂c_i/∂x_i, (P, D)
-
-
-class PartCotangents(NamedTuple):
-    """One step's gradient parts as the combiner receives them (in the parts' order)."""
-
-    zeta: tuple  # each part's ζ-cotangent γ_{i,t} (ZetaGrad of (P, D) arrays)
-    z: jax.Array  # (K, P, Dz) each part's cotangent on the GP input z = [x̃[I]; u], u last
-    num_actions: int  # the last num_actions entries of z are the action u_{t−1} (static)
-    pull_back: Callable  # (K', P, Dz) z-cotangents → (θ-cotangents (K', P, n_θ), x-cotangents (K', P, D) or None)
-
-    def gradients_and_messages(self):
-        """Every part pulled back at once: θ-gradients (K, P, n_θ) and, where a pathwise part reads
-        them, the messages ``∂G/∂x_{i,t−1} = (∂z/∂x)ᵀ c_z + γ_μ`` of each part (else None)."""
-        g, cx = self.pull_back(self.z)
-        messages = None if cx is None else [cx[i] + gam.mean for i, gam in enumerate(self.zeta)]
-        return g, messages
 
 
 def rp_zeta(a: jax.Array, mean: jax.Array, std: jax.Array, eps: jax.Array, config: RolloutConfig) -> ZetaGrad:
@@ -67,14 +37,13 @@ def rp_zeta(a: jax.Array, mean: jax.Array, std: jax.Array, eps: jax.Array, confi
 
 
 @strategy
-class Pathwise:
+class Pathwise(Stateless):
     """The reparameterization part (estimators.md §2)."""
 
     kind = PATHWISE
-    uses_previous_baseline = False
 
-    def zeta(self, s: StepInputs, config: RolloutConfig) -> ZetaGrad:
-        return rp_zeta(s.carried + s.cost_gradient, s.mean, s.std, s.eps, config)
+    def zeta(self, state, inputs: StepInputs, config: RolloutConfig) -> tuple[tuple, ZetaGrad]:
+        return state, rp_zeta(inputs.carried + inputs.cost_gradient, inputs.mean, inputs.std, inputs.eps, config)
 
 
 @strategy
@@ -84,26 +53,29 @@ class BiwLR:
     baseline: str = "previous"
 
     kind = LIKELIHOOD_RATIO
+    cold_start = False  # the first iteration's baseline comes from the extra rollout
 
-    @property
-    def uses_previous_baseline(self) -> bool:
-        return self.baseline == "previous"
+    def init(self, context: InitContext) -> MeanReturn | tuple:
+        return MeanReturn(context.mean_returns()) if self.baseline == "previous" else ()
 
-    def zeta(self, s: StepInputs, config: RolloutConfig) -> ZetaGrad:
+    def zeta(self, state, inputs: StepInputs, config: RolloutConfig) -> tuple[MeanReturn | tuple, ZetaGrad]:
         del config
-        return lr.biw_lr(s.x, s.mean, s.std, s.returns, self.baseline, s.previous_baseline)
+        x, mean, std, returns = inputs.x, inputs.mean, inputs.std, inputs.returns
+        if self.baseline != "previous":
+            return state, lr.biw_lr(x, mean, std, returns, self.baseline)
+        gamma = lr.biw_lr(x, mean, std, returns, self.baseline, state.mean_return)
+        return MeanReturn(jnp.mean(returns)), gamma
 
 
 @strategy
-class PlainLR:
+class PlainLR(Stateless):
     """LR without batch weighting, with the leave-one-out baseline (estimators.md §3)."""
 
     kind = LIKELIHOOD_RATIO
-    uses_previous_baseline = False
 
-    def zeta(self, s: StepInputs, config: RolloutConfig) -> ZetaGrad:
+    def zeta(self, state, inputs: StepInputs, config: RolloutConfig) -> tuple[tuple, ZetaGrad]:
         del config
-        return lr.plain_lr(s.x, s.mean, s.std, s.returns)
+        return state, lr.plain_lr(inputs.x, inputs.mean, inputs.std, inputs.returns)
 
 
 def pathwise() -> Pathwise:

@@ -1,6 +1,6 @@
 """One policy-update step built on :func:`~pipps.propagation.estimate.estimate`, and a scan of them.
 
-``make_policy_update(task, config, estimator, optimizer)`` returns a jitted
+``make_policy_update(problem, config, estimator, optimizer)`` returns a jitted
 ``step(key, state, model) -> (state, info)``; ``make_policy_optimizer`` a jitted
 ``run(key, state, model, num_steps)`` that scans ``num_steps`` of them (the 600 policy
 evaluations between trials). Shapes do not change between calls, so neither recompiles.
@@ -19,9 +19,9 @@ import jax.numpy as jnp
 import optax
 
 from pipps.particles.forward import RolloutConfig
-from pipps.propagation.config import Estimator
-from pipps.propagation.estimate import EstimatorState, estimate, init_estimator_state
-from pipps.propagation.backward import StepDiagnostics
+from pipps.propagation.estimate import estimate, init_estimator_state
+from pipps.propagation.estimators import Estimator
+from pipps.propagation.pieces import EstimatorState, StepDiagnostics
 from pipps.tasks.base import Problem
 
 
@@ -49,10 +49,10 @@ def _select(ok, new, old):
 
 
 def init_policy_opt_state(
-    key: jax.Array, policy, model, *, task: Problem, config: RolloutConfig, estimator: Estimator, optimizer
+    key: jax.Array, policy, model, *, problem: Problem, config: RolloutConfig, estimator: Estimator, optimizer
 ) -> PolicyOptState:
     """Fresh optimizer state (momentum reset) and estimator state for a warm-started policy."""
-    est_state = init_estimator_state(key, policy, model, task=task, config=config, estimator=estimator)
+    est_state = init_estimator_state(key, policy, model, problem=problem, config=config, estimator=estimator)
     return PolicyOptState(policy, optimizer.init(policy), est_state)
 
 
@@ -61,14 +61,14 @@ def policy_update(
     state: PolicyOptState,
     model,
     *,
-    task: Problem,
+    problem: Problem,
     config: RolloutConfig,
     estimator: Estimator,
     optimizer: optax.GradientTransformationExtraArgs,
 ) -> tuple[PolicyOptState, UpdateInfo]:
     """Estimate the gradient at the current policy and take one optimizer step (pure)."""
     est_state, est = estimate(
-        key, state.estimator_state, state.policy, model, task=task, config=config, estimator=estimator
+        key, state.estimator_state, state.policy, model, problem=problem, config=config, estimator=estimator
     )
     updates, opt_state = optimizer.update(est.grad, state.opt_state, state.policy, grad_variance=est.grad_variance)
     policy = optax.apply_updates(state.policy, updates)
@@ -79,17 +79,17 @@ def policy_update(
     return new, UpdateInfo(est.value, est.particle_objective, grad_norm, ~ok, est.diagnostics)
 
 
-def make_policy_update(task: Problem, config: RolloutConfig, estimator: Estimator, optimizer):
+def make_policy_update(problem: Problem, config: RolloutConfig, estimator: Estimator, optimizer):
     """A jitted ``step(key, state, model) -> (state, info)`` closed over the static configuration."""
 
     @jax.jit
     def step(key, state, model):
-        return policy_update(key, state, model, task=task, config=config, estimator=estimator, optimizer=optimizer)
+        return policy_update(key, state, model, problem=problem, config=config, estimator=estimator, optimizer=optimizer)
 
     return step
 
 
-def make_policy_optimizer(task: Problem, config: RolloutConfig, estimator: Estimator, optimizer, *, fixed_seed: bool = False):
+def make_policy_optimizer(problem: Problem, config: RolloutConfig, estimator: Estimator, optimizer, *, fixed_seed: bool = False):
     """A jitted ``run(key, state, model, num_steps) -> (state, info stacked over steps)``.
 
     Each step draws fresh particle noise from ``fold_in(key, i)``; with ``fixed_seed`` every
@@ -99,7 +99,7 @@ def make_policy_optimizer(task: Problem, config: RolloutConfig, estimator: Estim
     def run(key, state, model, num_steps: int):
         def body(st, i):
             k = key if fixed_seed else jax.random.fold_in(key, i)
-            return policy_update(k, st, model, task=task, config=config, estimator=estimator, optimizer=optimizer)
+            return policy_update(k, st, model, problem=problem, config=config, estimator=estimator, optimizer=optimizer)
 
         return jax.lax.scan(body, state, jnp.arange(num_steps))
 

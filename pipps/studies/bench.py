@@ -95,13 +95,13 @@ def _timing_program(snap: Snapshot, name: str, P: int):
     "previous" baseline) is computed once, outside, so its extra rollout is not timed."""
     def build():
         est, rcfg = estimator_setup(snap, name, P, "library")
-        task, model = snap.task, snap.model
-        state = init_estimator_state(jax.random.PRNGKey(1), snap.policy, model, task=task, config=rcfg, estimator=est)
+        problem, model = snap.task, snap.model
+        state = init_estimator_state(jax.random.PRNGKey(1), snap.policy, model, problem=problem, config=rcfg, estimator=est)
         key = jax.random.PRNGKey(2)
 
         @jax.jit
         def run(theta):
-            _, e = estimate(key, state, snap.unravel(theta), model, task=task, config=rcfg, estimator=est)
+            _, e = estimate(key, state, snap.unravel(theta), model, problem=problem, config=rcfg, estimator=est)
             return e.value, e.grad
 
         return run

@@ -3,13 +3,16 @@
 * :func:`record_landscape` — thesis Fig. 4.2 (a: the objective along ``θ + Δ·d``; b: the gradient
   along d, here for every estimator as in Fig. 4.12) and the variance of ĝ·d on a log axis;
 * :func:`record_variance` — thesis Fig. 4.13: tr Cov[ĝ] against the number of particles, log-log,
-  one panel per Δ, and TP's per-step k_LR;
+  one panel per Δ, and the per-step k_LR of every estimator that weighs two parts (TP's in the thesis);
 * :func:`record_bench` — ours (no thesis figure): the MSE to the reference gradient against the
   seconds per estimate, log-log, one panel per Δ.
 
 A series that lies orders of magnitude outside the others (RP where the dynamics are chaotic) would
 flatten them against an axis; it is left off the axis range, clipped at the plot box, and its extent
 written in the panel (:func:`off_scale`), as the thesis leaves RP out of Fig. 4.13b.
+
+Labels and colours are the estimator registry's (:data:`pipps.propagation.estimators.ESTIMATORS`);
+an estimator with settings (``"tp:k_lr=previous"``) is drawn lighter than its name's colour.
 """
 
 from __future__ import annotations
@@ -19,22 +22,46 @@ from pathlib import Path
 import numpy as np
 
 from pipps import charts as ch
-from pipps.studies.gradients import LABELS, LandscapeResult, VarianceResult, interval
+from pipps.propagation.estimators import ESTIMATORS, parse_spec, spec_label
+from pipps.studies.gradients import LandscapeResult, VarianceResult, interval
 
-COLORS = {"rp": (214, 39, 40), "lr_plain": (255, 127, 14), "lr": (44, 160, 44), "tp": (31, 119, 180),
-          "gtp": (148, 103, 189), "glr": (140, 86, 75), "del": (127, 127, 127)}
+COLORS = {name: entry.colour for name, entry in ESTIMATORS.items()}
 MM_COLOR = (190, 150, 0)
 PANEL = (560.0, 400.0)
+UNKNOWN_COLOR = (100, 100, 100)
+
+
+def _spec(name: str) -> str:
+    """The estimator of a series: ``"tp (variance tol 0.01)"`` → ``"tp"``."""
+    return name.split(" (")[0]
+
+
+def _known(name: str) -> bool:
+    try:
+        parse_spec(_spec(name))
+    except ValueError:
+        return False
+    return True
 
 
 def _color(name: str):
-    """An estimator's colour; a series ``"tp (variance tol 0.01)"`` takes its estimator's."""
-    return COLORS.get(name.split(" (")[0], (100, 100, 100))
+    """An estimator's colour from the registry; with settings, lighter; a series ``"tp (variance tol
+    0.01)"`` takes its estimator's."""
+    if not _known(name):
+        return UNKNOWN_COLOR
+    base, settings = parse_spec(_spec(name))
+    rgb = ESTIMATORS[base].colour
+    return tuple(int(round(c + 0.45 * (255 - c))) for c in rgb) if settings else rgb
 
 
 def _label(name: str) -> str:
-    base, _, rest = name.partition(" (")
-    return LABELS.get(base, base) + (f" ({rest}" if rest else "")
+    spec, _, rest = name.partition(" (")
+    return (spec_label(spec) if _known(spec) else spec) + (f" ({rest}" if rest else "")
+
+
+def _weighs_parts(name: str) -> bool:
+    """The series' estimator weighs two parts, so its per-step k_LR is a chosen weight worth plotting."""
+    return _known(name) and ESTIMATORS[parse_spec(_spec(name))[0]].weighs_parts
 
 
 def _sci(v: float) -> str:
@@ -120,9 +147,16 @@ def record_landscape(r: LandscapeResult, out: str | Path) -> Path:
 # -- variance against P (Fig. 4.13) ------------------------------------------------------------------
 
 
+def _weighted(r: VarianceResult) -> list[str]:
+    """The estimators whose k_LR the variance figure plots."""
+    return [n for n in r.samples if _weighs_parts(n)]
+
+
 def variance_figure(r: VarianceResult) -> tuple[ch.Figure, list[dict[str, np.ndarray]]]:
-    """One log-log panel per Δ (tr Cov[ĝ] against P) and TP's k_LR per step; per Δ, the estimators off scale."""
+    """One log-log panel per Δ (tr Cov[ĝ] against P) and, for the estimators that weigh two parts,
+    k_LR per step; per Δ, the estimators off scale."""
     names = list(r.samples)
+    weighted = _weighted(r)
     P = np.asarray(r.particles, dtype=float)
     px = ch.Axis("number of particles P", P.min() / 1.4, P.max() * 1.4, log=True,
                  ticks=tuple(float(p) for p in P), tick_labels=tuple(str(int(p)) for p in P))
@@ -137,15 +171,21 @@ def variance_figure(r: VarianceResult) -> tuple[ch.Figure, list[dict[str, np.nda
         kind = " (smooth)" if delta == 0 else ""
         charts.append(ch.chart(f"variance/delta_{di}", f"({letter}) Δ = {delta:.3g}{kind}: tr Cov[ĝ] over {r.repeats} repeats",
                                px, ch.Axis("tr Cov[ĝ]", *rng, log=True), PANEL))
-    if "tp" in r.samples:
-        T = len(r.samples["tp"][0][-1].k_lr)
-        charts.append(ch.chart("variance/k_lr", f"({'c' if len(r.deltas) == 2 else 'k'}) TP's k_LR per step, P = {int(P[-1])}",
+    if weighted:
+        T = len(r.samples[weighted[0]][0][-1].k_lr)
+        whose = f"{_label(weighted[0])}'s" if len(weighted) == 1 else "each weighted estimator's"
+        charts.append(ch.chart("variance/k_lr", f"({'c' if len(r.deltas) == 2 else 'k'}) {whose} k_LR per step, P = {int(P[-1])}",
                                ch.Axis("time step t", 0.5, T + 0.5), ch.Axis("k_LR: weight of the LR estimate", -0.04, 1.04),
                                PANEL))
-    keys = [*_estimator_keys(names), ch.Key("∝ 1/P (through TP's first point)", ch.GREY, "dash")]
-    if "tp" in r.samples:
-        keys += [ch.Key(f"TP k_LR, Δ = {d:.3g}", _color("tp"), "line" if i == 0 else "dash") for i, d in enumerate(r.deltas)]
+    keys = [*_estimator_keys(names), ch.Key(f"∝ 1/P (through {_label(_one_over_p(r))}'s first point)", ch.GREY, "dash")]
+    keys += [ch.Key(f"{_label(n)} k_LR, Δ = {d:.3g}", _color(n), "line" if i == 0 else "dash")
+             for n in weighted for i, d in enumerate(r.deltas)]
     return ch.figure(charts, len(charts), keys), hidden
+
+
+def _one_over_p(r: VarianceResult) -> str:
+    """The series the ∝ 1/P guide goes through: the first weighted estimator's, else the first's."""
+    return (_weighted(r) or list(r.samples))[0]
 
 
 def record_variance(r: VarianceResult, out: str | Path) -> Path:
@@ -159,17 +199,17 @@ def record_variance(r: VarianceResult, out: str | Path) -> Path:
                 v = np.array([s.trace_variance for s in grid[di]])
                 ch.line(rec, c, n, P, v, _color(n))
                 ch.points(rec, c, f"{n}_points", P, v, _color(n), size=3.0)
-            if "tp" in r.samples:
-                v0 = r.samples["tp"][di][0].trace_variance
-                ch.line(rec, c, "one_over_P", P, v0 * P[0] / P, ch.GREY, width=0.9, dash=True, order=3.0)
+            v0 = r.samples[_one_over_p(r)][di][0].trace_variance
+            ch.line(rec, c, "one_over_P", P, v0 * P[0] / P, ch.GREY, width=0.9, dash=True, order=3.0)
             for k, (n, v) in enumerate(sorted(hidden[di].items())):
                 ch.note(rec, c, f"off_scale_{n}", f"{_label(n)} off scale: {_sci(np.nanmin(v))} to {_sci(np.nanmax(v))}",
                         row=k)
-        if "tp" in r.samples:
+        if _weighted(r):
             c = fig.charts[-1]
-            for di in range(len(r.deltas)):
-                k = r.samples["tp"][di][-1].k_lr
-                ch.line(rec, c, f"tp_delta_{di}", np.arange(1, len(k) + 1), k, _color("tp"), width=1.3, dash=di > 0)
+            for n in _weighted(r):
+                for di in range(len(r.deltas)):
+                    k = r.samples[n][di][-1].k_lr
+                    ch.line(rec, c, f"{n}_delta_{di}", np.arange(1, len(k) + 1), k, _color(n), width=1.3, dash=di > 0)
     return Path(out)
 
 

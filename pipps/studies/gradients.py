@@ -10,8 +10,12 @@ estimate's per-parameter variance across repeats.
 * :func:`landscape`: ``Δ`` on a grid in ``[0, Δ_max]`` at one P; also the particle objective
   with one fixed seed (common random numbers along the line, as the thesis plots it), the
   moment-matching objective and its exact directional derivative for reference.
-* :func:`variance_study`: at a few ``Δ`` (smooth and chaotic) for several P; also TP's mean
-  per-step ``k_LR``.
+* :func:`variance_study`: at a few ``Δ`` (smooth and chaotic) for several P; also the mean
+  per-step ``k_LR`` of every estimator that weighs two parts.
+
+An estimator is named as in the registry (:data:`pipps.propagation.estimators.ESTIMATORS`), with
+settings if wanted: ``"tp:k_lr=previous"`` (:func:`pipps.propagation.estimators.from_spec`); its
+label and colour are the registry's.
 
 The 95 % interval of a mean directional derivative is ``± 1.96·sd/√R`` over the R repeats.
 """
@@ -29,20 +33,30 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from pipps.particles.forward import RolloutConfig, reparameterized_objective, sample_noise
-from pipps.propagation.config import NAMED, estimator, thesis_estimator
+from pipps.propagation.estimators import ESTIMATORS, NAMED, from_spec, spec_label
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.studies.snapshot import Snapshot
 
 #: the thesis' Fig. 4.2 set: RP, plain LR, BIW-LR, TP, GTP
 DEFAULT_ESTIMATORS = ("rp", "lr_plain", "lr", "tp", "gtp")
-LABELS = {"rp": "RP", "lr_plain": "LR", "lr": "BIW-LR", "tp": "TP", "gtp": "GTP", "glr": "GLR", "del": "DEL"}
+#: each named estimator's label (the registry's)
+LABELS = {name: entry.label for name, entry in ESTIMATORS.items()}
+
+
+def label(spec: str) -> str:
+    """An estimator's label: ``"tp"`` → ``"TP"``, ``"tp:k_lr=previous"`` → ``"TP (k_lr=previous)"``."""
+    return spec_label(spec)
 
 
 def _check_estimators(names) -> tuple[str, ...]:
     names = tuple(names)
-    bad = [n for n in names if n not in NAMED]
-    if bad or not names:
-        raise ValueError(f"estimators: unknown {bad or 'empty list'}; choose from {NAMED}")
+    if not names:
+        raise ValueError(f"estimators: empty list; choose from {NAMED}")
+    for n in names:
+        try:
+            from_spec(n)
+        except ValueError as err:
+            raise ValueError(f"estimators: {err}") from None
     return names
 
 
@@ -57,21 +71,22 @@ def _estimator_program(snap: Snapshot, name: str, P: int, choices: str):
 
 
 def estimator_setup(snap: Snapshot, name: str, P: int, choices: str):
-    """(Estimator, RolloutConfig) of a named estimator at P particles on the snapshot's horizon."""
-    est = thesis_estimator(name) if choices == "thesis" else estimator(name)
+    """(Estimator, RolloutConfig) of a named estimator (with its settings, if any) at P particles on the
+    snapshot's horizon."""
+    est = from_spec(name, choices)
     return est, RolloutConfig(num_particles=P, horizon=snap.config.horizon)
 
 
 def _build_estimator_program(snap: Snapshot, name: str, P: int, choices: str):
     est, rcfg = estimator_setup(snap, name, P, choices)
-    task, model = snap.task, snap.model
+    problem, model = snap.task, snap.model
 
     @jax.jit
     def run(key, theta):
         policy = snap.unravel(theta)
         k_state, k_est = jax.random.split(key)
-        state = init_estimator_state(k_state, policy, model, task=task, config=rcfg, estimator=est)
-        _, e = estimate(k_est, state, policy, model, task=task, config=rcfg, estimator=est)
+        state = init_estimator_state(k_state, policy, model, problem=problem, config=rcfg, estimator=est)
+        _, e = estimate(k_est, state, policy, model, problem=problem, config=rcfg, estimator=est)
         return ravel_pytree(e.grad)[0], e.diagnostics.k_lr
 
     return run
@@ -194,7 +209,7 @@ def landscape(
         for di, p in enumerate(points):
             key = jax.random.fold_in(jax.random.PRNGKey(seed + 1), 1000 * ei + di)
             samples[name].append(_samples(program, key, p, d, repeats))
-            progress(f"{LABELS.get(name, name)} Δ={deltas[di]:.3g} ({di + 1}/{len(points)})")
+            progress(f"{label(name)} Δ={deltas[di]:.3g} ({di + 1}/{len(points)})")
     return LandscapeResult(snap.source, snap.trial, deltas, d, direction, particles, repeats, seed, choices,
                            obj_fixed, obj_mm, dir_mm, samples, time.perf_counter() - start)
 
@@ -229,7 +244,7 @@ def variance_study(
             for di, delta in enumerate(deltas):
                 key = jax.random.fold_in(jax.random.PRNGKey(seed + 2), 10_000 * ei + 100 * pi + di)
                 samples[name][di][pi] = _samples(program, key, jnp.asarray(theta + delta * d), d, repeats)
-                progress(f"{LABELS.get(name, name)} P={P} Δ={delta:.3g}")
+                progress(f"{label(name)} P={P} Δ={delta:.3g}")
     return VarianceResult(snap.source, snap.trial, deltas, particles, d, direction, repeats, seed, choices,
                           samples, time.perf_counter() - start)
 
@@ -317,8 +332,8 @@ def read_study(path: str | Path) -> LandscapeResult | VarianceResult:
 def landscape_table(r: LandscapeResult) -> str:
     """Markdown: per Δ the objectives and each estimator's ĝ·d mean ± 95 % half-width, and Var[ĝ·d]."""
     names = list(r.samples)
-    head = "| Δ | J (fixed seed) | J_MM | ∇J_MM·d | " + " | ".join(f"{LABELS.get(n, n)} ĝ·d" for n in names) + " | " \
-        + " | ".join(f"Var {LABELS.get(n, n)}" for n in names) + " |"
+    head = "| Δ | J (fixed seed) | J_MM | ∇J_MM·d | " + " | ".join(f"{label(n)} ĝ·d" for n in names) + " | " \
+        + " | ".join(f"Var {label(n)}" for n in names) + " |"
     lines = [f"Landscape: {r.source} trial {r.trial}, P = {r.particles}, {r.repeats} repeats, direction {r.direction_kind}",
              "", head, "|" + "---|" * (4 + 2 * len(names))]
     for i, delta in enumerate(r.deltas):
@@ -343,7 +358,7 @@ def variance_table(r: VarianceResult) -> str:
     lines = [f"Variance: {r.source} trial {r.trial}, {r.repeats} repeats, direction {r.direction_kind}"]
     for di, delta in enumerate(r.deltas):
         lines += ["", f"Δ = {delta:.3g}", "",
-                  "| P | " + " | ".join(f"{LABELS.get(n, n)} Var[ĝ·d] | {LABELS.get(n, n)} tr Cov" for n in names) + " |",
+                  "| P | " + " | ".join(f"{label(n)} Var[ĝ·d] | {label(n)} tr Cov" for n in names) + " |",
                   "|" + "---|" * (1 + 2 * len(names))]
         for pi, P in enumerate(r.particles):
             cells = []
