@@ -1,6 +1,6 @@
 """Can a controller that sees the same noisy observations keep the cart-pole balanced? (docs/results.md)
 
-The physical criterion (pipps.experiments.criteria) asks for the pole within 0.3 rad of upright and
+The physical criterion (pipps.tasks.cartpole.balanced) asks for the pole within 0.3 rad of upright and
 the cart within 0.5 m of the centre over the last 10 states of an episode. At k = 9 every TP policy
 swings up and then holds the pole only loosely (13–40 % of its rollouts balanced). Is that the
 learner, or does the observation noise (std √k·(0.01 m, 0.1 m/s, 10°/s, 1°)) put the criterion out
@@ -50,8 +50,8 @@ from scipy.linalg import solve_discrete_are
 from scipy.stats import binom
 
 import pipps
-from pipps.experiments.criteria import BALANCE_ANGLE, BALANCE_POSITION, BALANCE_STEPS, BALANCED_FRACTION, balanced
-from pipps.experiments.tables import wilson_interval
+from pipps.reporting.tables import wilson_interval
+from pipps.tasks.cartpole import BALANCE_ANGLE, BALANCE_POSITION, BALANCE_STEPS, BALANCED_FRACTION, balanced
 from pipps.tasks.presets import make_task
 
 pipps.enable_float64()
@@ -251,7 +251,7 @@ def main(argv=None) -> None:
         print(f"\n({args.select} rollouts per design to choose, {args.report} independent ones reported; "
               f"{time.perf_counter() - t0:.0f} s)")
         return
-    from pipps.experiments.criteria import policy_unraveler
+    from pipps.experiments.resimulate import policy_unraveler
     from pipps.experiments.state import make_experiment_task
 
     print("\nScenario handover: each file's final policy for the first H − 10 steps from the start distribution, then "

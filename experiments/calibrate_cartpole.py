@@ -1,6 +1,6 @@
 """Calibrate the cart-pole's return threshold against the physical criterion (docs/results.md).
 
-Success on the cart-pole is physical (pipps.experiments.criteria): in at least ``balanced_fraction``
+Success on the cart-pole is physical (pipps.tasks.cartpole.balanced): in at least ``balanced_fraction``
 of the final trial's evaluation rollouts the pole ends within ``balance_angle`` of upright and the
 cart within ``balance_position`` of the centre over the last ``balance_steps`` states. The thesis'
 own rule is "final evaluated return below 15". This script puts the two side by side on every
@@ -9,7 +9,7 @@ learned policy of the given result files:
 1. each learned trial is one policy; its 30 evaluation rollouts are re-simulated on the true system
    with the stored policy and the trial's own keys (the returns must equal the stored ones; the
    largest difference is printed), or read from the file where it stores the per-rollout flags;
-2. :func:`pipps.experiments.calibration.fit_return_threshold` finds the thresholds τ for which
+2. :func:`pipps.reporting.calibration.fit_return_threshold` finds the thresholds τ for which
    "return < τ" agrees best with the physical verdict, and the agreement of the thesis' τ = 15;
 3. every policy on which the thesis' threshold and the physical criterion disagree is listed, per k;
 4. ``--fresh N`` also re-simulates each file's final policy with N independent rollouts (new keys):
@@ -27,9 +27,9 @@ from collections import defaultdict
 import numpy as np
 
 import pipps
-from pipps.experiments.calibration import fit_return_threshold
+from pipps.reporting.calibration import fit_return_threshold
 from pipps.experiments.methods import METHODS
-from pipps.experiments.criteria import Resimulator
+from pipps.experiments.resimulate import Resimulator
 from pipps.experiments.results import read_result
 
 pipps.enable_float64()

@@ -25,7 +25,7 @@ learned policy can find. The threshold therefore still has to be calibrated on l
 
 Learned policies now exist (the Table 4.4 runs), and ``--results`` calibrates on them: every
 learned trial of the given result files is one policy with its 30 evaluation rollouts, and
-:func:`pipps.experiments.calibration.fit_return_threshold` finds the τ that agrees best.
+:func:`pipps.reporting.calibration.fit_return_threshold` finds the τ that agrees best.
 
     python experiments/calibrate_unicycle.py --perturbations 4     # regulator family (docs/experiments.md)
     python experiments/calibrate_unicycle.py --results results/thesis/unicycle_*.h5
@@ -42,7 +42,7 @@ import scipy.linalg
 
 import pipps
 from pipps.experiments import resolve_config
-from pipps.experiments.calibration import fit_return_threshold
+from pipps.reporting.calibration import fit_return_threshold
 from pipps.experiments.results import read_result
 from pipps.experiments.loop import Programs, make_experiment_task
 from pipps.policies import LinearPolicy

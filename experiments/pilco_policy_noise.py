@@ -10,7 +10,7 @@ policy) and with it (``on``: PILCO release V0.9's ``S + diag(σ_n²/2)`` for the
 docs/pilco.md). The stored policy and both new ones are evaluated with the same ``--rollouts``
 fresh true-system rollouts (keys independent of the experiment's; common to the three policies,
 so their differences are paired): the fraction of rollouts with return below the threshold (15),
-the mean return and the fraction physically balanced (:mod:`pipps.experiments.criteria`).
+the mean return and the fraction physically balanced (:func:`pipps.tasks.cartpole.balanced`).
 
     JAX_PLATFORMS=cpu taskset -c 1 python experiments/pilco_policy_noise.py --rollouts 300 \\
         --out pilco_policy_noise.json \\
@@ -80,12 +80,12 @@ class Programs:
 
     def evaluate(self, cfg):
         """``(keys, policy) -> (returns, upright, balanced)`` on the true system (the loop's evaluation)."""
-        from pipps.experiments.programs import balance_settings, evaluate_rollouts
+        from pipps.experiments.programs import evaluate_rollouts, success_rule
 
-        task, balance = self.task(cfg), balance_settings(cfg)
-        key = ("eval", id(task), balance)
+        task, rule = self.task(cfg), success_rule(cfg)
+        key = ("eval", id(task), cfg.balance_steps, cfg.balance_angle, cfg.balance_position)
         if key not in self._programs:
-            self._programs[key] = jax.jit(lambda keys, p: evaluate_rollouts(keys, task, p, balance))
+            self._programs[key] = jax.jit(lambda keys, p: evaluate_rollouts(keys, task, p, rule))
         return self._programs[key]
 
 

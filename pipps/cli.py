@@ -14,6 +14,12 @@ else runs (:func:`pipps.enable_float64`; importing the library does not).
 
 Compiled programs are kept in JAX's persistent compilation cache (:func:`enable_compilation_cache`),
 so the second experiment of a sweep, and every later command, reuses the first one's programs.
+
+``--task`` names a built-in task, a task registered by an installed package (entry point group
+``pipps.tasks``), or a task of your own as ``MODULE:ATTRIBUTE`` (``pipps run --task
+mytasks:pendulum``; docs/tutorial.md). The module is imported with the current directory on the
+path (appended, so it shadows nothing), as ``python -m`` would find it; ``table`` and ``plot``
+take ``--task`` to find the task of results whose stored source has moved.
 """
 
 from __future__ import annotations
@@ -92,7 +98,7 @@ def _setting(text: str) -> tuple[str, str]:
 #: ``--set`` keys that have an option of their own (one way to give each setting; docs/experiments.md)
 RUN_OWN_OPTIONS = {"task": "--task", "method": "--method", "cost": "--cost", "k": "--k", "seed": "--seed",
                    "num_particles": "--particles", "preset": "--preset", "protocol": "--preset"}
-SWEEP_OWN_OPTIONS = {"task": "--table", "method": "--methods", "k": "--k", "seed": "--seeds/--seed-start",
+SWEEP_OWN_OPTIONS = {"task": "--table or --task", "method": "--methods", "k": "--k", "seed": "--seeds/--seed-start",
                      "preset": "--preset", "protocol": "--preset"}
 
 
@@ -121,8 +127,13 @@ def _check_settings(settings: list[tuple[str, str]], own: dict[str, str], fixed_
     return out
 
 
+#: ``--task``'s help: what it accepts
+TASK_HELP = ("a built-in task (cartpole_swingup, cartpole_balance, unicycle), one an installed package registers, or "
+             "MODULE:ATTRIBUTE of a task of your own (docs/tutorial.md)")
+
+
 def _add_experiment_options(p: argparse.ArgumentParser, *, single: bool) -> None:
-    from pipps.experiments.config import PRESET_NAMES, TASKS
+    from pipps.experiments.config import PRESET_NAMES
     from pipps.experiments.methods import METHODS
 
     # run: None means "not given" (the defaults are filled in by _run_config; --resume keeps the file's)
@@ -130,7 +141,7 @@ def _add_experiment_options(p: argparse.ArgumentParser, *, single: bool) -> None
                    help="thesis (the thesis protocol; default), pilco (PILCO's task defaults) or quick (a few "
                         "minutes on a CPU)")
     if single:
-        p.add_argument("--task", default=None, choices=TASKS, help="default cartpole_swingup")
+        p.add_argument("--task", default=None, metavar="TASK", help=f"{TASK_HELP}; default cartpole_swingup")
         p.add_argument("--method", default=None, choices=list(METHODS), help="default tp")
         p.add_argument("--cost", default=None, help="angle | tip (cart-pole), unicycle; default: the task preset's")
         p.add_argument("--k", type=_nonnegative_float, default=None,
@@ -150,8 +161,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     ro = sub.add_parser("rollout", help="simulate a few episodes with a random policy and print the returns")
-    ro.add_argument("--task", default="cartpole_swingup", choices=["cartpole_swingup", "cartpole_balance", "unicycle"])
-    ro.add_argument("--preset", default="thesis", choices=["thesis", "pilco"])
+    ro.add_argument("--task", default="cartpole_swingup", metavar="TASK", help=f"{TASK_HELP}; default cartpole_swingup")
+    ro.add_argument("--preset", default=None, help="the task preset (built-in tasks: thesis or pilco; default: the "
+                                                   "task's first)")
     ro.add_argument("--k", type=_nonnegative_float, default=1.0, help="observation-noise variance multiplier")
     ro.add_argument("--policy", default="random-actions", choices=["random-actions", "random-policy"])
     ro.add_argument("--episodes", type=opt.int_at_least(1, 100_000), default=3)
@@ -170,15 +182,19 @@ def build_parser() -> argparse.ArgumentParser:
                      help="replace the file at --out even if it holds a complete result or another experiment "
                           "(without it, an existing result is never replaced)")
 
-    sw = sub.add_parser("sweep", help="run a table's cells over seeds in parallel workers (resumable)")
-    sw.add_argument("--table", required=True, type=opt.one_of("table", opt.tables),
-                    help="4.1, 4.2, 4.3, 4.4, q001 (Q × 0.01 cell) or del")
+    sw = sub.add_parser("sweep", help="run a table's cells, or a task's methods and k values, over seeds in parallel "
+                                      "workers (resumable)")
+    what = sw.add_mutually_exclusive_group(required=True)
+    what.add_argument("--table", type=opt.one_of("table", opt.tables),
+                      help="4.1, 4.2, 4.3, 4.4, q001 (Q × 0.01 cell) or del")
+    what.add_argument("--task", metavar="TASK",
+                      help=f"{TASK_HELP}: its --methods (default tp) × --k (default 1) × seeds, its own table")
     sw.add_argument("--seeds", type=_positive_int, default=20, help="seeds per cell (0..N-1)")
     sw.add_argument("--seed-start", type=_nonnegative_int, default=0)
     sw.add_argument("--methods", default=None, type=opt.names("methods", opt.methods),
-                    help="comma-separated subset of the table's methods")
+                    help="comma-separated subset of the table's methods (with --task: the methods to run, default tp)")
     sw.add_argument("--k", dest="ks", default=None, type=opt.float_list(0.0),
-                    help="comma-separated subset of the table's k values")
+                    help="comma-separated subset of the table's k values (with --task: the k values, default 1)")
     sw.add_argument("--jobs", type=_jobs, default=None,
                     help="parallel worker processes (local; default auto: one per CPU, each pinned, and the CPUs "
                          "shared out when fewer experiments remain) or Ray tasks in flight (ray; default: all)")
@@ -216,6 +232,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also print, per cell, every seed's final return and fraction of rollouts balanced (upright)")
     tb.add_argument("--compare", default="tp,pilco", type=_method_pair, metavar="A,B",
                     help="the two methods whose difference each table gives under every reading (default tp,pilco)")
+    tb.add_argument("--task", dest="tasks", action="append", default=[], metavar="MODULE:ATTRIBUTE",
+                    help="where to find a task of your own whose results are read, when its stored source has moved "
+                         "(repeatable)")
     tb.add_argument("--by", default=None, metavar="SETTING",
                     help="compare the results by one setting's value (e.g. estimator_choices): each cell's rate per "
                          "value side by side, with the difference of two values and Fisher's p; results that depart "
@@ -241,6 +260,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "as pipps table)")
     pl.add_argument("--custom", action="store_true",
                     help="cells/curves: also count results whose settings depart from the preset")
+    pl.add_argument("--task", dest="tasks", action="append", default=[], metavar="MODULE:ATTRIBUTE",
+                    help="where to find a task of your own whose results are drawn, when its stored source has moved "
+                         "(repeatable)")
     pl.add_argument("--out", default="pipps.rrd", type=opt.file_name(".rrd"), help="recording to write")
     pl.add_argument("--png", default=None, type=opt.file_name(".png"),
                     help="also render the recording to this PNG (needs xvfb-run, Mesa and the rerun viewer)")
@@ -248,6 +270,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="PNG window size WxH (default: the figure's own layout; 1600x1000 for the overview)")
     pl.add_argument("--overwrite", action="store_true",
                     help="replace existing --out/--png files (never an experiment result)")
+
+    from pipps.propagation.estimators import estimator_help
 
     st = sub.add_parser("study", help="gradient studies on a policy snapshot from a result file (docs/gradients.md)")
     studies = st.add_subparsers(dest="study", required=True)
@@ -257,7 +281,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("result", help="a result file of a cart-pole run (pipps run/sweep)")
         p.add_argument("--trial", type=_positive_int, default=None,
                        help="learned trial whose optimisation start is the snapshot (default: the last one the file can rebuild)")
-        p.add_argument("--estimators", default=None, help="comma-separated: rp, lr_plain, lr (BIW), tp, gtp, glr, del")
+        p.add_argument("--estimators", default=None, help=f"comma-separated, each NAME or NAME:SETTING=VALUE "
+                       f"(e.g. tp:k_lr=previous; docs/estimators.md): {estimator_help()}")
         p.add_argument("--repeats", type=_int_at_least(2), default=None, help="independent estimates per point")
         p.add_argument("--direction", default="pilco", choices=["pilco", "random"],
                        help="pilco: the moment-matching descent direction (the thesis'); random: a random unit vector")
@@ -282,7 +307,8 @@ def build_parser() -> argparse.ArgumentParser:
     bn = sub.add_parser("bench", help="run time against gradient error per estimator and P, and the Pareto table")
     bn.add_argument("result", help="a result file of a cart-pole run (the snapshot, as for pipps study)")
     bn.add_argument("--trial", type=_positive_int, default=None, help="learned trial (default: the last one the file can rebuild)")
-    bn.add_argument("--estimators", default=None, help="comma-separated (default rp,lr,tp,gtp)")
+    bn.add_argument("--estimators", default=None,
+                    help=f"comma-separated, as for pipps study (default rp,lr,tp,gtp): {estimator_help()}")
     bn.add_argument("--particles", default=None, type=opt.int_list(2),
                     help="comma-separated P values (default 30,100,300,1000)")
     bn.add_argument("--deltas", default=None, type=opt.float_list(),
@@ -330,7 +356,8 @@ def _progress_printer(stream=None):
         elif phase == "evaluated":
             done.append(event["seconds"])
             name = event.get("criterion", "upright")
-            out.write(f"{head} evaluated return {event['eval_return']:.3f} ({name} {event.get(name, event['upright']):.0%})"
+            passed = event.get("passed", event.get(name, event["upright"]))  # the rollouts meeting the task's criterion
+            out.write(f"{head} evaluated return {event['eval_return']:.3f} ({name} {passed:.0%})"
                       .ljust(100) + "\n")
         out.flush()
 
@@ -339,6 +366,17 @@ def _progress_printer(stream=None):
 
 #: what `pipps run` runs when an option is not given (and `--resume --out FILE` does not read it from FILE)
 RUN_DEFAULTS = {"preset": "thesis", "task": "cartpole_swingup", "method": "tp", "k": 1.0, "seed": 0}
+
+
+def _task_name(ref: str) -> str:
+    """The name of the task ``ref`` names (a name or MODULE:ATTRIBUTE, loaded and registered here),
+    or :class:`UsageError` saying why it is not available."""
+    from pipps.tasks.registry import TaskUnavailable, get_task
+
+    try:
+        return get_task(ref).name
+    except TaskUnavailable as err:
+        raise UsageError(f"--task {ref}: {err}") from None
 
 
 def _given(args) -> dict:
@@ -371,6 +409,8 @@ def _resume_config(args, out):
     except ResultError as err:
         raise UsageError(f"--resume: nothing to continue at {out}: {err}") from None
     given = _given(args)
+    if ":" in given.get("task", ""):  # where the task is now: the resumed run records it
+        stored = stored.replace(task=given.pop("task")) if _task_name(args.task) == stored.task else stored
     refuse_unused(given.get("method", stored.method), given)
     differ = []
     if args.preset is not None and args.preset != stored.protocol:
@@ -467,7 +507,7 @@ def _cmd_run(args) -> int:
 
 def _cmd_sweep(args) -> int:
     from pipps.experiments.sweep import import_ray, run_sweep, survey
-    from pipps.experiments.tables import table_configs
+    from pipps.reporting.tables import table_configs
 
     if args.address is not None and args.backend != "ray":
         print("pipps sweep: error: --address needs --backend ray", file=sys.stderr)
@@ -485,12 +525,15 @@ def _cmd_sweep(args) -> int:
             print(f"pipps sweep: error: --backend ray: {err}", file=sys.stderr)
             return 2
     from pipps.experiments.storage import check_output_folder, claim_sweep_folder
-    from pipps.experiments.tables import get_table
+    from pipps.reporting.tables import get_table, task_table
 
-    try:
-        table = get_table(args.table)
-    except ValueError as err:
-        raise UsageError(str(err)) from None
+    if args.task is not None:  # the task's own table: its methods × k values
+        table = task_table(_task_name(args.task), args.ks or [1.0], args.methods or ["tp"])
+    else:
+        try:
+            table = get_table(args.table)
+        except ValueError as err:
+            raise UsageError(str(err)) from None
     fixed = {name for cell in table.cells for name, _ in cell.values}
     overrides = _check_settings(args.settings, SWEEP_OWN_OPTIONS, fixed)
     methods, ks = args.methods, args.ks  # lists, read and checked by argparse
@@ -603,7 +646,8 @@ def _result_paths(items):
 
 def _cmd_table(args) -> int:
     from pipps.experiments.results import ResultError, read_summary
-    from pipps.experiments.tables import TABLES, comparable_settings, counts, get_table, judge_counted, render_curves
+    from pipps.reporting.tables import TABLES, comparable_settings, counts, get_table, judge_counted, render_curves
+    from pipps.reporting.tables import result_tables
 
     paths = _result_paths(args.results)
     try:
@@ -612,12 +656,16 @@ def _cmd_table(args) -> int:
         raise UsageError(str(err)) from None
     if args.by is not None and args.by not in comparable_settings():
         raise UsageError(f"--by {args.by}: not a setting of an experiment; choose one of {', '.join(comparable_settings())}")
+    for task in args.tasks:
+        _task_name(task)
     summaries, skipped = [], []
     for p in paths:
         try:
             summaries.append(read_summary(p))
         except ResultError as err:
             skipped.append(str(err))
+    if not args.table:  # a task no thesis table has gets its own
+        tables += result_tables(summaries)
     args.preset, note = _resolve_preset(args.preset, summaries, args.results)
     tables = [_labelled(t, args.preset) for t in tables]
     # with --by, a result that departs from the preset only in that setting counts: the groups keep it apart
@@ -645,7 +693,7 @@ def _cmd_table(args) -> int:
         print(f"  not counted: {s}")
     if resimulated:
         worst = max(s["resim_error"] for s in resimulated)
-        print(f"{len(resimulated)} cart-pole files predate the stored physical criterion: their final trial's "
+        print(f"{len(resimulated)} {_tasks_of(resimulated)} files predate the stored physical criterion: their final trial's "
               f"evaluation rollouts were re-simulated (stored policy and keys; largest return difference {worst:.1e})")
     if not printed:
         where = ", ".join(map(str, args.results))
@@ -654,6 +702,11 @@ def _cmd_table(args) -> int:
               file=sys.stderr)
         return 1
     return 0
+
+
+def _tasks_of(summaries) -> str:
+    """The tasks of result summaries in words (their records' labels), for a line about them."""
+    return " and ".join(dict.fromkeys(s["config"].task_spec.label for s in sorted(summaries, key=lambda s: s["config"].task)))
 
 
 def _resolve_preset(asked: str | None, summaries, where) -> tuple[str, str]:
@@ -683,6 +736,8 @@ def _labelled(table, preset: str):
     if preset == "thesis":
         return table
     head, sep, rest = table.title.partition(" — ")
+    if not table.thesis:  # a task's own table: only the preset to say
+        return dataclasses.replace(table, title=f"{head} ({preset} preset){sep}{rest}")
     return dataclasses.replace(table, title=f"{head} ({preset} preset, not the thesis protocol; thesis values for "
                                             f"orientation only){sep}{rest}")
 
@@ -690,7 +745,7 @@ def _labelled(table, preset: str):
 def _print_tables(args, tables, counted) -> int:
     """pipps table: each table with results (render_table), with its per-seed rows and cell curves
     where asked. Returns the number of tables printed."""
-    from pipps.experiments.tables import collect, render_cell_curves, render_seeds, render_table
+    from pipps.reporting.tables import collect, render_cell_curves, render_seeds, render_table
 
     printed = 0
     for t in tables:
@@ -711,8 +766,8 @@ def _print_tables(args, tables, counted) -> int:
 def _print_comparison(args, tables, counted) -> int:
     """pipps table --by: each table's cells per value of the setting (render_comparison), then the
     per-seed rows and curves of each value's results. Returns the number of tables printed."""
-    from pipps.experiments.tables import (collect, render_cell_curves, render_comparison, render_paired, render_seeds,
-                                         split_by)
+    from pipps.reporting.tables import (collect, render_cell_curves, render_comparison, render_paired, render_seeds,
+                                        split_by)
 
     groups = split_by(counted, args.by)
     printed = 0
@@ -748,7 +803,7 @@ def _study_kind(path) -> str | None:
 
 
 def _cmd_plot(args) -> int:
-    from pipps.experiments.plot import check_viewer, render_png
+    from pipps.reporting.plot import check_viewer, render_png
     from pipps.experiments.storage import check_new_file, publish
 
     if args.png:
@@ -765,6 +820,8 @@ def _cmd_plot(args) -> int:
         if args.png == args.out:
             raise UsageError("--png and --out name one file")
         check_new_file(args.png, overwrite=args.overwrite, option="--png", inputs=tuple(paths), command="pipps plot")
+    for task in args.tasks:
+        _task_name(task)
     studies = [k for k in map(_study_kind, paths) if k is not None]
     if studies:
         if len(paths) != 1:
@@ -824,8 +881,8 @@ def _read_each(paths, reader) -> list:
 
 def _result_figure(figure, paths, args, out):
     from pipps import charts as ch
-    from pipps.experiments.figures import diagnostics_figure, record_diagnostics
-    from pipps.experiments.plot import group_name, record
+    from pipps.reporting.figures import diagnostics_figure, record_diagnostics
+    from pipps.reporting.plot import group_name, record
     from pipps.experiments.results import read_result
 
     results = _read_each(paths, read_result)
@@ -843,13 +900,13 @@ def _result_figure(figure, paths, args, out):
 
 def _table_figure(figure, paths, args, out):
     from pipps import charts as ch
-    from pipps.experiments import figures as f
     from pipps.experiments.results import read_summary
-    from pipps.experiments.tables import TABLES, cell_summaries, collect, get_table, judge_counted
+    from pipps.reporting import figures as f
+    from pipps.reporting.tables import TABLES, cell_summaries, collect, get_table, judge_counted, result_tables
 
     summaries = _read_each(paths, read_summary)
     try:
-        tables = [get_table(args.table)] if args.table else list(TABLES.values())
+        tables = [get_table(args.table)] if args.table else list(TABLES.values()) + result_tables(summaries)
     except ValueError as err:
         raise UsageError(str(err)) from None
     args.preset, note = _resolve_preset(args.preset, summaries, args.results)
@@ -1030,6 +1087,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     enable_float64()
     enable_compilation_cache()
+    if os.getcwd() not in sys.path:  # a task of your own as MODULE:ATTRIBUTE, from here (module doc)
+        sys.path.append(os.getcwd())
     name = f"pipps {args.command}" + (f" {args.study}" if args.command == "study" else "")
     try:
         return _dispatch(args)
@@ -1058,12 +1117,16 @@ def _dispatch(args) -> int:
     if args.command == "rollout":
         from pipps.demo import random_policy_rollouts
         from pipps.experiments.preflight import check_noise
-        from pipps.tasks.presets import make_task
+        from pipps.tasks.registry import get_task
 
-        horizon = make_task(args.task, preset=args.preset).problem.horizon
-        check_noise(args.task, args.preset, args.k, horizon * args.episodes)  # the policy squares observations too
+        spec = get_task(_task_name(args.task))
+        preset = args.preset or spec.presets[0]
+        if preset not in spec.presets:
+            raise UsageError(f"--preset {preset}: {spec.name}'s task presets are {', '.join(spec.presets)}")
+        horizon = spec.make(preset).problem.horizon
+        check_noise(spec.name, preset, args.k, horizon * args.episodes)  # the policy squares observations too
 
-        rep = random_policy_rollouts(args.task, args.preset, args.k, args.policy, args.episodes, args.seed)
+        rep = random_policy_rollouts(spec.name, preset, args.k, args.policy, args.episodes, args.seed)
         print(f"{rep.task} ({rep.preset} preset, k={rep.k:g}), {rep.policy}:")
         for i, (ret, n) in enumerate(zip(rep.returns, rep.lengths)):
             print(f"  episode {i}: return (total cost) {ret:.4f} over {n} steps")

@@ -143,7 +143,7 @@ def file_name(suffix: str):
 
 
 def tables():
-    from pipps.experiments.tables import TABLES
+    from pipps.reporting.tables import TABLES
 
     return TABLES
 

@@ -134,6 +134,8 @@ def kept_report(rows, command: str) -> list[str]:
 
 # -- caveats of a study ------------------------------------------------------------------------------------
 
+#: the task the thesis' gradient studies measured on (a reference experiment's setting, like a table's task)
+THESIS_STUDY_TASK = "cartpole_swingup"
 #: the settings of the thesis' figures that pipps study quotes numbers of
 THESIS_STUDY = {
     "landscape": dict(particles=1000, repeats=10, direction="pilco", deltas=(0.0, 1.5),
@@ -152,7 +154,7 @@ def study_caveat(kind: str, cfg: ExperimentConfig, *, particles, repeats: int, d
     with at least the particles and repeats of :data:`THESIS_STUDY` and Δ spanning its values."""
     ref = THESIS_STUDY[kind]
     off = []
-    if cfg.task != "cartpole_swingup":
+    if cfg.task != THESIS_STUDY_TASK:
         off.append(f"a {cfg.task} policy (the thesis: cart-pole swing-up)")
     if cfg.protocol != "thesis":
         off.append(f"a {cfg.protocol}-preset file (the thesis protocol is --preset thesis)")

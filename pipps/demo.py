@@ -8,8 +8,8 @@ import jax
 import numpy as np
 
 from pipps.policies import init_linear_policy, init_rbf_policy
-from pipps.rollout import rollout
-from pipps.tasks.presets import make_task
+from pipps.rollout import rollout, rollouts
+from pipps.tasks.registry import get_task
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,24 +30,30 @@ def random_policy_rollouts(
     episodes: int = 3,
     seed: int = 0,
 ) -> RolloutReport:
-    """Roll out ``episodes`` episodes with random actions or a freshly initialised policy."""
+    """Roll out ``episodes`` episodes with random actions or a freshly initialised policy: a linear
+    one where the task's thesis-preset experiments learn one (the unicycle), else an RBF policy.
+    ``task_name``: a task's name or ``module:attribute`` (:func:`pipps.tasks.get_task`)."""
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     if policy not in ("random-actions", "random-policy"):
         raise ValueError(f"policy must be 'random-actions' or 'random-policy', got {policy!r}")
-    task = make_task(task_name, preset=preset, k=k)
+    spec = get_task(task_name)
+    task = spec.make(preset, k)
     key_pol, key_roll = jax.random.split(jax.random.PRNGKey(seed))
     pol = None
     if policy == "random-policy":
         d = task.problem.policy_input_dim
-        if task_name == "unicycle":
+        if spec.experiment_settings("thesis").get("policy") == "linear":
             pol = init_linear_policy(key_pol, d, task.problem.u_max)
         else:
             pol = init_rbf_policy(key_pol, 50, np.zeros(d), np.eye(d), task.problem.u_max)
-    run = jax.jit(jax.vmap(lambda key: rollout(key, task, pol)))
-    trajs = run(jax.random.split(key_roll, episodes))
+    keys = jax.random.split(key_roll, episodes)
+    if task.host_stepped:
+        trajs = rollouts(keys, task, pol)
+    else:
+        trajs = jax.jit(jax.vmap(lambda key: rollout(key, task, pol)))(keys)
     return RolloutReport(
-        task_name,
+        spec.name,
         preset,
         k,
         policy,

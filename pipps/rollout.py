@@ -7,10 +7,17 @@ it runs a whole trajectory in one compiled call.
 
 A rollout takes a :class:`~pipps.tasks.base.Task`: its simulator integrates, observes and maps
 into the model state; its problem gives the horizon, the cost and the policy input.
+
+A true system JAX cannot trace (a :class:`~pipps.tasks.base.HostSimulator`: a gymnasium
+environment, a robot) is stepped from Python by :func:`host_rollout`, with the same keys, noise,
+random actions and records as :func:`rollout`; only the policy and the cost are compiled.
+:func:`rollout` hands such a task to it (outside ``jit``), and :func:`rollouts` runs one episode
+per key either way.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Callable, NamedTuple
 
 import jax
@@ -59,6 +66,11 @@ def rollout(
     task with a fall condition, a non-finite next state counts as a fall as well.
     """
     require_float64("pipps.rollout.rollout")
+    if task.host_stepped:
+        if isinstance(key, jax.core.Tracer):
+            raise TypeError(f"{task.simulator.name}: a host-stepped true system cannot be traced (jit, vmap); "
+                            "call rollout() or host_rollout() outside them")
+        return host_rollout(key, task, policy, horizon=horizon)
     sim, problem = task.simulator, task.problem
     H = problem.horizon if horizon is None else int(horizon)
     k0, k_obs, k_act = jax.random.split(key, 3)
@@ -98,10 +110,89 @@ def rollout(
 def training_pairs(task: Task, traj: Trajectory) -> tuple[np.ndarray, np.ndarray]:
     """GP training data of one trajectory (tasks.md §1.3): inputs ``[x̃^o_t[I]; u_t]``, targets ``x^o_{t+1} − x^o_t``.
 
-    Only valid transitions are returned (host-side arrays; the data set grows on the host).
+    Only valid transitions are returned (host-side arrays; the data set grows on the host). The
+    simulator's ``periodic`` components (angles ``sim_to_model`` returns wrapped) have their
+    differences wrapped into [−π, π), so crossing ±π is a small step, not a jump of 2π.
     """
     x_obs = jax.vmap(task.simulator.sim_to_model)(traj.observations)
     inputs = jax.vmap(task.problem.gp_input)(x_obs[:-1], traj.actions)
     targets = x_obs[1:] - x_obs[:-1]
+    if task.simulator.periodic:
+        idx = jnp.asarray(task.simulator.periodic)
+        targets = targets.at[:, idx].set(jnp.mod(targets[:, idx] + jnp.pi, 2 * jnp.pi) - jnp.pi)
     keep = np.asarray(traj.valid)
     return np.asarray(inputs)[keep], np.asarray(targets)[keep]
+
+
+# -- a true system stepped from Python ------------------------------------------------------------------
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _act(problem, sim_to_model, policy, observation):
+    """The control the policy applies to one observation (compiled once per problem and policy shape)."""
+    return policy(problem.policy_input(sim_to_model(observation)))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _costs(problem, sim_to_model, states, valid):
+    """c(x(s_{t+1})) of every transition, 0 where not valid."""
+    return jnp.where(valid, jax.vmap(lambda s: problem.cost(sim_to_model(s)))(states[1:]), 0.0)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _draws(key, horizon: int, sim_dim: int, action_dim: int, noise_std, u_rand):
+    """What :func:`rollout` draws from ``key``: the reset seed (in place of s_0), observation noise, random actions."""
+    k0, k_obs, k_act = jax.random.split(key, 3)
+    seed = jax.random.randint(k0, (), 0, 2**31 - 1)
+    obs_noise = noise_std * jax.random.normal(k_obs, (horizon + 1, sim_dim))
+    rand_u = jax.random.uniform(k_act, (horizon, action_dim), minval=-u_rand, maxval=u_rand)
+    return seed, obs_noise, rand_u
+
+
+def host_rollout(key: jax.Array, task: Task, policy: Callable[[jax.Array], jax.Array] | None = None, *,
+                 horizon: int | None = None) -> Trajectory:
+    """One episode of a host-stepped true system (a :class:`~pipps.tasks.base.HostSimulator`), as
+    :func:`rollout` runs one of a simulated system: the same splits of ``key`` (the first seeds the
+    system's own ``reset`` instead of drawing s_0), the same observation noise and random actions,
+    the same record. After the system ends an episode (a fall) it is not stepped again: the rest
+    of the transitions are invalid, their costs 0 and the state frozen. Not jittable (it calls
+    Python); the policy and the cost are compiled once per task and policy shape.
+    """
+    require_float64("pipps.rollout.host_rollout")
+    sim, problem = task.simulator, task.problem
+    H = problem.horizon if horizon is None else int(horizon)
+    seed, obs_noise, rand_u = jax.device_get(_draws(key, H, sim.sim_dim, problem.action_dim,
+                                                    jnp.asarray(sim.obs_noise_std), jnp.asarray(sim.u_rand)))
+    system = sim.system()
+    s = np.asarray(system.reset(int(seed)), dtype=np.float64)
+    states, obs, actions, valid = [s], [], [], []
+    alive = True
+    for t in range(H):
+        o = s + obs_noise[t]
+        u = rand_u[t] if policy is None else np.asarray(_act(problem, sim.sim_to_model, policy, jnp.asarray(o)))
+        ok = False
+        if alive:
+            s_next, ended = system.step(u)
+            s_next = np.asarray(s_next, dtype=np.float64)
+            ok = not ended and bool(np.all(np.isfinite(s_next)))
+            alive = not ended
+            if ok:
+                s = s_next
+        obs.append(o)
+        actions.append(np.asarray(u, dtype=np.float64))
+        valid.append(ok)
+        states.append(s)
+    obs.append(s + obs_noise[H])
+    states, valid = np.stack(states), np.asarray(valid)
+    costs = _costs(problem, sim.sim_to_model, jnp.asarray(states), jnp.asarray(valid))
+    return Trajectory(jnp.asarray(states), jnp.asarray(np.stack(obs)), jnp.asarray(np.stack(actions)), costs,
+                      jnp.asarray(valid))
+
+
+def rollouts(keys: jax.Array, task: Task, policy: Callable[[jax.Array], jax.Array] | None = None) -> Trajectory:
+    """One rollout per key, stacked on a leading axis: ``vmap`` of :func:`rollout` (pure, jittable),
+    or, for a host-stepped system, :func:`host_rollout` key by key."""
+    if not task.host_stepped:
+        return jax.vmap(lambda k: rollout(k, task, policy))(keys)
+    trajs = [host_rollout(k, task, policy) for k in keys]
+    return Trajectory(*(jnp.stack(parts) for parts in zip(*trajs)))

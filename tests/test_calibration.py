@@ -1,9 +1,9 @@
-"""The unicycle's return-threshold calibration (pipps.experiments.calibration)."""
+"""The unicycle's return-threshold calibration (pipps.reporting.calibration)."""
 
 import numpy as np
 import pytest
 
-from pipps.experiments.calibration import fit_return_threshold
+from pipps.reporting.calibration import fit_return_threshold
 
 
 def _errors(returns, success, tau):

@@ -356,7 +356,8 @@ def test_the_cost_model_prices_by_method_particles_horizon_and_gp_size():
     assert tp.remaining(8) < tp.total and tp.remaining(16) == 0
     quick = resolve_config("quick", "cartpole_swingup")
     assert budget.estimate(quick, 40.0, cold=True).total > budget.estimate(quick, 40.0, cold=False).total
-    assert 10 < budget.gemm_gflops(n=128, reps=3) < 10_000
+    # a rate, not a benchmark: a loaded 2-core machine measured 9 Gflop/s, so only its order is checked
+    assert 0.1 < budget.gemm_gflops(n=128, reps=3) < 10_000
 
 
 def test_the_model_predicts_a_committed_experiment_it_was_not_fitted_on():
@@ -444,7 +445,7 @@ def test_pipps_study_prints_the_caveat_beside_the_thesis_number(tmp_path, capsys
 
 
 def test_png_without_xvfb_or_a_driver_fails_first_with_the_install_line(monkeypatch, capsys, tmp_path):
-    from pipps.experiments import plot
+    from pipps.reporting import plot
 
     monkeypatch.setenv("PATH", "/nonexistent")
     code, out = cli(capsys, "plot", tmp_path / "not-read-yet", "--out", tmp_path / "x.rrd", "--png", tmp_path / "x.png")

@@ -33,7 +33,7 @@ from pipps.experiments.results import (
 )
 from pipps.experiments.sweep import (accelerator_installed, cpu_layout, experiment_name, ray_task, run_sweep,
                                      worker_pool)
-from pipps.experiments.tables import (TABLES, collect, render_cell_curves, render_curves, render_seeds, render_table,
+from pipps.reporting.tables import (TABLES, collect, render_cell_curves, render_curves, render_seeds, render_table,
                                      table_configs, wilson_interval)
 
 TINY = dict(num_learned=1, num_particles=8, policy_evals=6, eval_rollouts=3, gp_max_iters=10, progress_chunk=3,
@@ -200,7 +200,7 @@ def test_a_comparison_by_a_setting_counts_each_value_apart_with_the_difference()
     difference and p are those of the two groups' counts."""
     from scipy.stats import binomtest, mannwhitneyu, wilcoxon
 
-    from pipps.experiments.tables import (counts, difference_interval, fisher_exact, render_comparison, render_paired,
+    from pipps.reporting.tables import (counts, difference_interval, fisher_exact, render_comparison, render_paired,
                                          split_by)
     from pipps.reporting.readings import clustered_interval, newcombe_interval
 
@@ -762,7 +762,7 @@ def test_cli_table_by_a_setting_prints_each_value_and_names_a_bad_setting(tiny_r
 
 
 def test_plot_writes_a_recording_of_the_curves(tiny_result, tmp_path):
-    from pipps.experiments.plot import curve, record
+    from pipps.reporting.plot import curve, record
 
     result, _ = tiny_result
     mean, std = curve([result, result])

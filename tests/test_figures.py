@@ -1,4 +1,4 @@
-"""The figures (pipps.charts, pipps.experiments.figures, pipps.studies.figures, ``pipps plot --figure``).
+"""The figures (pipps.charts, pipps.reporting.figures, pipps.studies.figures, ``pipps plot --figure``).
 
 Each figure is recorded from small synthetic results and read back from the .rrd with rerun's own
 reader: the entities and their geometry (where the data land on the axes), and the blueprint (every
@@ -21,7 +21,7 @@ from pipps.experiments.config import resolve_config
 from pipps.reporting.readings import clustered_interval, seed_values
 from pipps.experiments.records import (Diagnostics, ExperimentResult, MomentPrediction, ParticlePrediction, Timings,
                                        TrialResult)
-from pipps.experiments.tables import TABLES, cell_summaries, collect, wilson_interval
+from pipps.reporting.tables import TABLES, cell_summaries, collect, wilson_interval
 from pipps.studies.bench import BenchEntry, BenchResult
 from pipps.studies.gradients import LandscapeResult, Samples, VarianceResult, interval
 
@@ -217,7 +217,7 @@ def _summary(method, k, seed, returns, *, task="cartpole_swingup", success=True,
 
 
 def test_curves_figure_draws_median_quartiles_and_threshold_per_cell(tmp_path):
-    from pipps.experiments.figures import curves_figure, record_curves
+    from pipps.reporting.figures import curves_figure, record_curves
 
     rows = np.array([[30, 20, 10, 9], [30, 25, 15, 12], [30, 28, 20, 11], [30, 29, 27, 26.0]])
     summaries = [_summary("tp", 1.0, s, r) for s, r in enumerate(rows)] + [_summary("pilco", 9.0, 0, [30, 25, 19, 17.0])]
@@ -246,7 +246,7 @@ def test_curves_figure_draws_median_quartiles_and_threshold_per_cell(tmp_path):
 
 
 def test_unicycle_curves_add_the_upright_fraction_on_which_success_is_judged(tmp_path):
-    from pipps.experiments.figures import curves_figure
+    from pipps.reporting.figures import curves_figure
 
     table = TABLES["4.4"]
     s = [_summary("tp", 1.0, i, 15.0 / np.arange(1, 36), task="unicycle") for i in range(2)]
@@ -256,7 +256,7 @@ def test_unicycle_curves_add_the_upright_fraction_on_which_success_is_judged(tmp
 
 
 def test_cells_figure_places_rates_intervals_and_thesis_values(tmp_path):
-    from pipps.experiments.figures import cells_figure, record_cells
+    from pipps.reporting.figures import cells_figure, record_cells
 
     tp_final = [(10, 10), (9, 8), (7, 6), (3, 0)]  # (rollouts below the threshold, rollouts balanced) of 10
     summaries = [_summary("tp", 1.0, s, [30, 10.0], success=s < 3, final=f) for s, f in enumerate(tp_final)]
@@ -301,7 +301,7 @@ def _trial(index, T=30, S=4, predicted=None, diagnostics=None):
 
 
 def test_diagnostics_figure_has_time_and_angle_axes_and_per_step_panels(tmp_path):
-    from pipps.experiments.figures import diagnostics_figure, record_diagnostics
+    from pipps.reporting.figures import diagnostics_figure, record_diagnostics
 
     particles = np.repeat(np.linspace(0, 3.0, 31)[:, None, None], 4, axis=1) * np.ones((1, 1, 4))
     diag = Diagnostics(np.linspace(1, 0, 30), np.logspace(3, -1, 30), np.logspace(3, 1, 30), np.zeros(6), np.zeros(30))
@@ -328,7 +328,7 @@ def test_diagnostics_figure_has_time_and_angle_axes_and_per_step_panels(tmp_path
 
 
 def test_overview_keeps_its_timeline_and_moves_the_legends_to_free_corners(tmp_path):
-    from pipps.experiments.plot import record
+    from pipps.reporting.plot import record
 
     diag = Diagnostics(np.linspace(1, 0, 30), np.logspace(3, -1, 30), np.logspace(3, 1, 30), np.zeros(6), np.zeros(30))
     particles = np.zeros((31, 4, 4))
@@ -386,7 +386,7 @@ def test_rendered_figure_is_the_figure_alone(tmp_path):
     no notification toasts), dark axis strokes inside, and the palette keeps it small."""
     from PIL import Image
 
-    from pipps.experiments.plot import render_png
+    from pipps.reporting.plot import render_png
     from pipps.studies.figures import record_variance, variance_figure
 
     r = _variance_result()

@@ -30,11 +30,13 @@ LAYERS = {
     "pipps.rollout": 3, "pipps.particles": 3, "pipps.pilco": 3,
     "pipps.propagation": 4, "pipps.systems": 4,
     "pipps.stats": 5,
-    "pipps.experiments": 6, "pipps.studies": 6, "pipps.charts": 6,
+    "pipps.experiments": 6, "pipps.studies": 6, "pipps.charts": 6, "pipps.reporting": 6,
     "pipps.cli": 7, "pipps.cli_options": 7, "pipps.cli_report": 7, "pipps.demo": 7, "pipps.tasks.envs": 7,
+    "pipps.tasks.gym_task": 7,
 }
 #: imports against the layering, each made on request inside a function
-UPWARD = {("pipps.tasks", "pipps.tasks.envs")}  # register_envs() and the lazy ENV_IDS, PippsEnv
+UPWARD = {("pipps.tasks", "pipps.tasks.envs"),  # register_envs() and the lazy ENV_IDS, PippsEnv
+          ("pipps.tasks", "pipps.tasks.gym_task")}  # the lazy from_gymnasium
 
 
 def fresh(code: str) -> dict:
@@ -91,9 +93,9 @@ def test_float64_entry_points_refuse_float32_and_say_what_to_do():
         calls = {
             "pipps.gp.make_data": lambda: make_data(np.zeros((3, 2)), np.zeros((3, 1))),
             "pipps.propagation.init_estimator_state":
-                lambda: init_estimator_state(key, policy, model, task=task, config=cfg, estimator=rp),
+                lambda: init_estimator_state(key, policy, model, problem=task, config=cfg, estimator=rp),
             "pipps.propagation.estimate":
-                lambda: estimate(key, None, policy, model, task=task, config=cfg, estimator=rp),
+                lambda: estimate(key, None, policy, model, problem=task, config=cfg, estimator=rp),
             "pipps.pilco.objective": lambda: objective(task, policy, model),
             "pipps.rollout.rollout": lambda: rollout(key, make_task("cartpole_swingup")),
             "PippsEnv": lambda: PippsEnv("cartpole_swingup"),

@@ -35,8 +35,8 @@ from pipps.experiments.methods import (
 )
 from pipps.experiments.results import write_result
 from pipps.experiments.storage import MANIFEST, OutputError, claim_sweep_folder, existing_result
-from pipps.experiments.tables import TABLES, collect, table_configs
-from pipps.propagation.config import compose, estimator, thesis_estimator
+from pipps.reporting.tables import TABLES, collect, table_configs
+from pipps.propagation.estimators import compose, estimator, thesis_estimator
 from pipps.propagation.cost_terms import plain_costs
 from pipps.propagation.parts import pathwise
 

@@ -179,7 +179,7 @@ def test_a_hand_made_result_set_tabulates_as_computed_by_hand(tmp_path):
     by_hand = [_stored_readings(tmp_path / "a.h5"), _stored_readings(tmp_path / "b.h5")]
     assert (by_hand[1]["trial_return"], by_hand[1]["seed_return"]) == (0.0, 0.0)
 
-    from pipps.experiments.tables import TABLES, collect, judge_counted
+    from pipps.reporting.tables import TABLES, collect, judge_counted
     from pipps.experiments.results import read_summary
 
     judged, errors = judge_counted([read_summary(tmp_path / n) for n in ("a.h5", "b.h5")])
@@ -206,7 +206,7 @@ ISSUE_TABLE = {
 
 def test_the_committed_table_4_1_files_tabulate_to_the_documented_readings():
     from pipps.experiments.results import read_summary
-    from pipps.experiments.tables import TABLES, collect, judge_counted
+    from pipps.reporting.tables import TABLES, collect, judge_counted
 
     paths = [THESIS / f"cartpole_swingup_angle_k{k:g}_{m}_thesis_s{s}.h5"
              for (k, m, seeds) in ISSUE_TABLE for s in seeds]

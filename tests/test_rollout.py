@@ -74,7 +74,11 @@ def test_cli_rollout_prints_the_library_returns(capsys):
     [(["rollout", "--k", "-1"], "--k"), (["rollout", "--episodes", "0"], "--episodes"), (["rollout", "--preset", "bad"], "--preset")],
 )
 def test_cli_rejects_bad_values_naming_the_option(argv, option, capsys):
-    with pytest.raises(SystemExit) as exc:
-        main(argv)
-    assert exc.value.code == 2
+    # argparse rejects a bad number while parsing (SystemExit); a task preset is checked once the
+    # task's record is found (a task of your own has its own presets), and main returns the usage code
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    assert code == 2
     assert option in capsys.readouterr().err

@@ -1,12 +1,12 @@
-"""Episodic learning experiments: configuration, the learning loop, HDF5 results, sweeps,
-the thesis' success-rate tables and rerun plots (experiments.md). See docs/experiments.md."""
+"""Episodic learning experiments: configuration, the learning loop, HDF5 results and sweeps
+(experiments.md; docs/experiments.md). Tables, figures and verdicts are :mod:`pipps.reporting`."""
 
 from pipps.experiments.config import PRESET_NAMES, ConfigError, ExperimentConfig, resolve_config
-from pipps.experiments.loop import ExperimentResult, TrialResult, judge_success, run_experiment
+from pipps.experiments.loop import ExperimentResult, TrialResult, run_experiment
 from pipps.experiments.methods import METHODS, Method
 from pipps.experiments.state import restore
 
 __all__ = [
     "ConfigError", "ExperimentConfig", "ExperimentResult", "METHODS", "Method", "PRESET_NAMES", "TrialResult",
-    "judge_success", "resolve_config", "restore", "run_experiment",
+    "resolve_config", "restore", "run_experiment",
 ]

@@ -68,6 +68,11 @@ def check_batchable(cfgs: Sequence[ExperimentConfig]) -> None:
                          "runs unbatched; the batched mode takes the stochastic-gradient particle methods")
     if base.variance_tol > 0:
         raise ValueError("batched: variance_tol > 0 (the low-rank variance) has per-seed ranks and runs unbatched")
+    from pipps.experiments.state import make_experiment_task
+
+    if make_experiment_task(base).host_stepped:
+        raise ValueError(f"batched: {base.task}'s true system is stepped from Python (a HostSimulator) and runs "
+                         "seed by seed")
 
 
 class SeedBatch:

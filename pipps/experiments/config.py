@@ -33,6 +33,15 @@ renaming it would change the hash of every experiment. ``pipps run --set preset=
 (``--preset`` is the experiment preset).
 
 Methods and the settings each uses are the registry :mod:`pipps.experiments.methods`.
+
+**The task.** ``task`` is a task's name; its record (:class:`pipps.tasks.TaskSpec`, found by
+:func:`pipps.tasks.get_task`) says what else the configuration means for it: the task presets and
+costs it takes, its experiment settings under each preset, its success criterion. A task of your
+own is given by name once registered, as ``module:attribute``, or as the record itself; the
+configuration then stores its name and, in ``task_source``, where it came from (module:attribute),
+so that a result file can be resumed and tabulated in another process. ``task_source`` is
+provenance, not identity: it is left out of :func:`canonical` (file name, hash, resume checks),
+and a built-in task's configuration, which has none, is stored without it.
 """
 
 from __future__ import annotations
@@ -47,16 +56,15 @@ from typing import Any
 from pipps.experiments.methods import METHODS, Method
 
 PRESET_NAMES = ("thesis", "pilco", "quick")
-TASKS = ("cartpole_swingup", "cartpole_balance", "unicycle")
-
-#: The quick preset's RBF centre box over [x_c, v, ω, θ] (experiments.md "quick").
-QUICK_CENTRE_LOW = (-1.0, -3.0, -8.0, -math.pi / 2)
-QUICK_CENTRE_HIGH = (1.0, 3.0, 8.0, 3 * math.pi / 2)
-QUICK_LOG_LAMBDA = (0.0, 2.0, 4.0, 2.0)
 
 
 class ConfigError(ValueError):
     """A configuration value is invalid; the message names the setting."""
+
+
+class UnavailableTask(ConfigError):
+    """The configuration's task cannot be found in this process (:class:`pipps.tasks.TaskUnavailable`):
+    reading, resuming or tabulating its results stops here, in one line that says where it was looked for."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,7 +75,8 @@ class ExperimentConfig:
     """
 
     # what is learned
-    task: str = "cartpole_swingup"
+    task: str = "cartpole_swingup"  # a task's name (module doc, "The task")
+    task_source: str | None = None  # where a task of your own came from (module:attribute); None for a built-in one
     preset: str = "thesis"  # the *task* preset: physics, noise, cost (module doc, "Two presets")
     protocol: str = "thesis"  # the *experiment* preset it was built from, ``--preset`` (module doc)
     cost: str | None = None  # angle | tip | unicycle; None: the task preset's default
@@ -82,7 +91,7 @@ class ExperimentConfig:
     eval_rollouts: int = 30  # evaluation rollouts per trial (reporting only)
     success_threshold: float = 15.0  # cart-pole: the thesis' return threshold (reported beside the physical verdict)
     upright_fraction: float = 0.95  # unicycle: fraction of evaluation rollouts that must stay upright
-    # cart-pole physical success (pipps.experiments.criteria): in the last balance_steps states the pole
+    # cart-pole physical success (pipps.tasks.cartpole.balanced): in the last balance_steps states the pole
     # within balance_angle rad of upright and the cart within balance_position m of the centre, in at
     # least balanced_fraction of the final trial's evaluation rollouts
     balance_steps: int = 10
@@ -152,8 +161,34 @@ class ExperimentConfig:
     def replace(self, **changes) -> "ExperimentConfig":
         return resolve_overrides(self, changes)
 
+    @property
+    def task_spec(self):
+        """The task's record (:class:`pipps.tasks.TaskSpec`)."""
+        from pipps.tasks.registry import get_task
+
+        return get_task(self.task, source=self.task_source)
+
     def __post_init__(self):
+        _normalise_task(self)
         validate(self)
+
+
+def _normalise_task(c: ExperimentConfig) -> None:
+    """``task`` given as a record or as ``module:attribute``: stored as its name, with its source.
+    A name alone takes the source the registry knows for it (a task loaded earlier in the process)."""
+    from pipps.tasks.registry import TaskUnavailable, get_task, task_source
+    from pipps.tasks.spec import TaskSpec
+
+    task = c.task
+    if isinstance(task, TaskSpec) or (isinstance(task, str) and ":" in task):
+        try:
+            spec = get_task(task)
+        except TaskUnavailable as err:
+            raise UnavailableTask(f"task: {err}") from None
+        object.__setattr__(c, "task", spec.name)
+        object.__setattr__(c, "task_source", task if isinstance(task, str) else task_source(spec.name))
+    elif isinstance(task, str) and c.task_source is None:
+        object.__setattr__(c, "task_source", task_source(task))
 
 
 def _field_types() -> dict[str, Any]:
@@ -167,16 +202,16 @@ def _need(cond: bool, name: str, msg: str) -> None:
 
 def validate(c: ExperimentConfig) -> None:
     """Raise :class:`ConfigError` naming the first bad setting."""
-    from pipps.tasks.presets import PRESETS, TASK_COSTS
-
-    _need(c.task in TASKS, "task", f"unknown task {c.task!r}; choose one of {', '.join(TASKS)}")
-    _need(c.preset in PRESETS, "preset", f"unknown task preset {c.preset!r}; choose one of {', '.join(PRESETS)}")
+    spec = task_record(c.task, c.task_source)
+    _need(c.task_source is None or isinstance(c.task_source, str), "task_source",
+          f"must be MODULE:ATTRIBUTE or None, got {c.task_source!r}")
+    _need(c.preset in spec.presets, "preset",
+          f"unknown task preset {c.preset!r}; choose one of {', '.join(spec.presets)}")
     _need(c.protocol in PRESET_NAMES, "protocol",
           f"unknown experiment preset {c.protocol!r}; choose one of {', '.join(PRESET_NAMES)}")
     _need(c.method in METHODS, "method", f"unknown method {c.method!r}; choose one of {', '.join(METHODS)}")
     if c.cost is not None:
-        _need(c.cost in TASK_COSTS[c.task], "cost",
-              f"unknown cost {c.cost!r} for {c.task}; choose one of {', '.join(TASK_COSTS[c.task])}")
+        _need(c.cost in spec.costs, "cost", f"unknown cost {c.cost!r} for {c.task}; choose one of {', '.join(spec.costs)}")
     finite = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)  # noqa: E731
     _need(finite(c.k) and c.k >= 0, "k", f"the noise multiplier must be a finite number >= 0, got {c.k!r}")
     _need(finite(c.cost_scale) and c.cost_scale > 0, "cost_scale", f"must be > 0, got {c.cost_scale!r}")
@@ -204,7 +239,8 @@ def validate(c: ExperimentConfig) -> None:
         _need(finite(v) and v > 0, name, f"must be > 0, got {v!r}")
     _need(c.policy in ("rbf", "pilco_rbf", "linear"), "policy", f"choose rbf, pilco_rbf or linear, got {c.policy!r}")
     _need(c.policy_init in ("start", "uniform"), "policy_init", f"choose start or uniform, got {c.policy_init!r}")
-    _need(c.policy_init != "uniform" or c.task != "unicycle", "policy_init", "uniform centres are a cart-pole setting")
+    _need(c.policy_init != "uniform" or spec.centre_box is not None, "policy_init",
+          f"uniform centres need the task's centre box, and {c.task} has none (TaskSpec.centre_box)")
     if c.centre_std is not None:
         _need(finite(c.centre_std) and c.centre_std > 0, "centre_std", f"must be > 0, got {c.centre_std!r}")
     _need(len(c.log_lambda_init) >= 1 and all(finite(v) for v in c.log_lambda_init), "log_lambda_init",
@@ -230,46 +266,44 @@ def validate(c: ExperimentConfig) -> None:
 # -- presets ---------------------------------------------------------------------------------
 
 
-def preset_values(preset: str, task: str) -> dict[str, Any]:
-    """The settings a preset fixes for a task (before the user's overrides)."""
+def task_record(task, source: str | None = None):
+    """The record of ``task`` (a name, ``module:attribute`` or a record), or :class:`ConfigError`
+    naming the setting ``task`` with why it is not available."""
+    from pipps.tasks.registry import TaskUnavailable, get_task
+
+    try:
+        return get_task(task, source=source)
+    except TaskUnavailable as err:
+        raise UnavailableTask(f"task: {err}") from None
+
+
+def preset_values(preset: str, task) -> dict[str, Any]:
+    """The settings a preset fixes for a task (before the user's overrides): the task's own
+    (:meth:`pipps.tasks.TaskSpec.experiment_settings`: its task preset, loop, policy, budget) and
+    the protocol's estimator choices and GP capacities. ``task``: a name, ``module:attribute`` or
+    a record (:func:`pipps.tasks.get_task`).
+
+    The thesis preset spreads the RBF centres as the start mean plus N(0, I) (``centre_std = 1``):
+    the one departure from experiments.md's "centres initialized from the start distribution"
+    (N(0, 0.1²I)), which barely learns; the author's demo spreads them so. Evidence in
+    docs/results.md ("Why the thesis preset spreads the centres"); ``--set centre_std=none``
+    restores the start distribution."""
     if preset not in PRESET_NAMES:
         raise ConfigError(f"preset: unknown preset {preset!r}; choose one of {', '.join(PRESET_NAMES)}")
-    if task not in TASKS:
-        raise ConfigError(f"task: unknown task {task!r}; choose one of {', '.join(TASKS)}")
-    unicycle = task == "unicycle"
-    v: dict[str, Any] = dict(task=task, protocol=preset)
-    if preset in ("thesis", "quick"):
-        v.update(preset="thesis", estimator_choices="thesis")
-        if unicycle:
-            v.update(num_random=5, num_learned=30, policy="linear")
-        else:
-            # centre_std = 1: the one departure from experiments.md's "centres initialized from the
-            # start distribution" (N(0, 0.1²I)), which barely learns; the author's demo spreads the
-            # centres as start mean + N(0, I). Evidence in docs/results.md ("Why the thesis preset
-            # spreads the centres"); --set centre_std=none restores the start distribution.
-            v.update(num_random=1, num_learned=15, policy="rbf", num_basis=50, centre_std=1.0)
-    else:  # pilco task defaults (tasks.md §2-3), library estimators
-        v.update(preset="pilco", estimator_choices="library")
-        if unicycle:
-            v.update(num_random=10, num_learned=40, policy="linear")
-        else:
-            v.update(num_random=1, num_learned=15, policy="pilco_rbf", num_basis=10)
+    from pipps.tasks.registry import task_source
+
+    spec = task_record(task)
+    source = task if isinstance(task, str) and ":" in task else task_source(spec.name)
+    v: dict[str, Any] = dict(task=spec.name, task_source=source, protocol=preset)
+    # the thesis' own estimator choices for its protocol; the library's unbiased ones with PILCO's task defaults
+    v.update(estimator_choices="library" if preset == "pilco" else "thesis")
+    v.update(spec.experiment_settings(preset))
     if preset != "quick":
         # exact GP capacities: one compiled size per trial (the persistent compilation cache shares
         # them across a sweep's experiments) against ~11 % of a thesis TP experiment's arithmetic
         # spent on padding in steps of 100 (docs/performance.md); quick runs are compilation-bound
         # and keep few sizes
         v.update(gp_chunk=1)
-    if preset == "quick":
-        if unicycle:
-            v.update(num_random=3, num_learned=5, num_particles=50, policy_evals=150, eval_rollouts=10,
-                     learning_rate=5e-3, gp_max_iters=100)
-        else:
-            # experiments.md "quick": centres spread over the state box, wider length-scales, and
-            # a step size that can move the weights in 300 evaluations (α/(1−γ) per iteration).
-            v.update(num_learned=5, num_particles=50, policy_evals=300, eval_rollouts=10,
-                     policy_init="uniform", log_lambda_init=QUICK_LOG_LAMBDA, learning_rate=5e-3,
-                     gp_max_iters=100)
     return v
 
 
@@ -323,8 +357,9 @@ def resolve_overrides(base: ExperimentConfig | dict, overrides: dict[str, Any]) 
     return ExperimentConfig(**values)
 
 
-def resolve_config(preset: str = "thesis", task: str = "cartpole_swingup", **overrides) -> ExperimentConfig:
-    """The configuration of ``preset`` for ``task`` with ``overrides`` (validated).
+def resolve_config(preset: str = "thesis", task="cartpole_swingup", **overrides) -> ExperimentConfig:
+    """The configuration of ``preset`` for ``task`` with ``overrides`` (validated). ``task``: a
+    name, ``module:attribute`` or a :class:`pipps.tasks.TaskSpec` (module doc, "The task").
 
     An override of a setting the method does not use is refused by name (:func:`refuse_unused`);
     the preset's own values of such settings stay, since they cannot change the experiment.
@@ -375,7 +410,8 @@ def from_dict(d: dict[str, Any]) -> ExperimentConfig:
 #: code did before the setting existed, used when a stored configuration lacks it (so a later
 #: change of a default cannot relabel an old file).
 LEGACY_VALUES: dict[str, Any] = {"variance_tol": 0.0, "balance_steps": 10, "balance_angle": 0.3,
-                                 "balance_position": 0.5, "balanced_fraction": 0.5, "pilco_policy_noise": False}
+                                 "balance_position": 0.5, "balanced_fraction": 0.5, "pilco_policy_noise": False,
+                                 "task_source": None}
 
 #: Settings added after result files were first written that :func:`config_hash` leaves out while they
 #: hold their :data:`LEGACY_VALUES` value, so that every configuration that leaves them alone keeps the
@@ -414,6 +450,11 @@ IDENTITY = ("task", "protocol", "method", "cost", "cost_scale", "k", "seed")
 #: "Exact GP capacities"); each trial stores the capacity it used (``trial.gp.capacity``).
 COMPUTATIONAL = ("gp_chunk", "progress_chunk")
 
+#: Settings that say where something came from, not what the experiment is: left out of
+#: :func:`canonical` like :data:`COMPUTATIONAL` (a task's ``module:attribute`` may change when
+#: its code moves), and out of a stored configuration while they are None (:func:`stored_dict`).
+PROVENANCE = ("task_source",)
+
 
 def canonical(cfg: ExperimentConfig) -> dict[str, Any]:
     """The configuration as a dict with the default cost named (``cost=None`` and ``cost="angle"``
@@ -426,18 +467,22 @@ def canonical(cfg: ExperimentConfig) -> dict[str, Any]:
     reads as if it had not been given, rather than being dropped, so that every configuration
     that leaves it alone keeps the ``config_hash`` and file name it had before the methods
     declared the settings they use."""
-    from pipps.tasks.presets import DEFAULT_COST
-
     d = cfg.to_dict()
     preset = protocol_config(cfg).to_dict()
     d.update({name: preset[name] for name in cfg.method_spec.unused})
     if d["cost"] is None:
-        d["cost"] = DEFAULT_COST[(cfg.task, cfg.preset)]
+        d["cost"] = cfg.task_spec.default_cost(cfg.preset)
     for name, hint in _field_types().items():  # k=1 and k=1.0 are one experiment (and one hash)
         v = d[name]
         if float in typing.get_args(hint) + (hint,) and isinstance(v, int) and not isinstance(v, bool):
             d[name] = float(v)
-    return {k: v for k, v in d.items() if k not in COMPUTATIONAL}
+    return {k: v for k, v in d.items() if k not in COMPUTATIONAL + PROVENANCE}
+
+
+def stored_dict(cfg: ExperimentConfig) -> dict[str, Any]:
+    """The configuration as a result file stores it: every setting, but the :data:`PROVENANCE` ones
+    only where set (a built-in task's configuration is stored as it always was)."""
+    return {k: v for k, v in cfg.to_dict().items() if not (k in PROVENANCE and v is None)}
 
 
 def same_experiment(a: ExperimentConfig, b: ExperimentConfig) -> bool:
@@ -459,7 +504,7 @@ def config_hash(cfg: ExperimentConfig) -> str:
 def protocol_config(cfg: ExperimentConfig) -> ExperimentConfig:
     """What ``cfg``'s experiment preset gives for its table cell and seed, with no other override."""
     ident = {k: getattr(cfg, k) for k in IDENTITY if k not in ("task", "protocol")}
-    return resolve_config(cfg.protocol, cfg.task, **ident)
+    return resolve_config(cfg.protocol, cfg.task_spec, **ident)
 
 
 def departures(cfg: ExperimentConfig) -> dict[str, tuple[Any, Any]]:
@@ -473,11 +518,9 @@ def experiment_name(cfg: ExperimentConfig) -> str:
     experiment that follows its protocol, with ``_cHASH`` (the first 8 hex digits of
     :func:`config_hash`) appended when any other setting departs from it, so that two different
     configurations never share a name."""
-    from pipps.tasks.presets import TASK_COSTS
-
     # the cost's name (the default one named, so that cost=None and cost="angle" share a file);
     # "default" for a task with a single cost
-    cost = canonical(cfg)["cost"] if len(TASK_COSTS[cfg.task]) > 1 else "default"
+    cost = canonical(cfg)["cost"] if len(cfg.task_spec.costs) > 1 else "default"
     if cfg.cost_scale != 1.0:
         cost += f"x{_number(cfg.cost_scale)}"
     name = f"{cfg.task}_{cost}_k{_number(cfg.k)}_{cfg.method}_{cfg.protocol}_s{cfg.seed}"

@@ -4,7 +4,8 @@ An experiment runs ``num_random`` random trials, then ``num_learned`` times: tra
 state dimension on all data → optimise the policy on the model with the chosen method → run one
 trial on the true system with the policy and append its transitions. After every trial the
 current policy is evaluated by ``eval_rollouts`` extra true-system rollouts that are never used
-for learning. Success is judged on the final trial's evaluation (:func:`judge_success`).
+for learning. Success is judged on the final trial's evaluation by the task's criterion
+(:mod:`pipps.reporting.verdicts`).
 
 **One loop, a seed axis.** :func:`run_seeds` runs the seeds of one configuration together: every
 phase of a trial is one program over the seeds' axis (:mod:`pipps.experiments.programs`). An
@@ -43,23 +44,15 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from pipps.experiments.config import ExperimentConfig, config_difference, same_experiment
-from pipps.experiments.programs import (  # noqa: F401  (balance_settings ...: re-exported from their old home)
+from pipps.experiments.programs import (  # noqa: F401  (evaluate_rollouts ...: re-exported from their old home)
     ONE_SEED,
     Programs,
     Progress,
-    balance_settings,
     evaluate_rollouts,
     predict_particles,
     step_report,
 )
-from pipps.experiments.records import (  # noqa: F401
-    ExperimentResult,
-    GPRecord,
-    Timings,
-    TrialResult,
-    judge_return,
-    judge_success,
-)
+from pipps.experiments.records import ExperimentResult, GPRecord, Timings, TrialResult
 from pipps.experiments.state import (  # noqa: F401  (gp_config ...: re-exported from their old home)
     advance,
     gp_config,
@@ -184,6 +177,7 @@ def run_seeds(
     t_start = time.perf_counter()
     cfg = cfgs[0]
     task = make_experiment_task(cfg)
+    criterion = cfg.task_spec.success_for(cfg).name  # what the progress display counts
     programs = Programs(cfg, task, axis)
     gpc = gp_config(cfg)
     results = [ExperimentResult(c, []) for c in cfgs]
@@ -237,7 +231,8 @@ def run_seeds(
                           eval_return=float(np.mean([t.eval_return for t in trials])),
                           upright=float(np.mean([t.upright_fraction for t in trials])),
                           balanced=float(np.mean([t.balanced_fraction for t in trials])),
-                          criterion="balanced" if cfg.task != "unicycle" else "upright", seconds=total))
+                          criterion=criterion, passed=float(np.mean([t.balanced_fraction for t in trials])),
+                          seconds=total))
             on_trial(results)
     except BaseException as err:  # every seed still running fails; keep what finished, say what broke
         for s in active:

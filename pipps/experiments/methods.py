@@ -98,8 +98,8 @@ class Method:
 
     ``particles=None`` and ``estimator=None`` mean PILCO's moment matching with its exact
     gradient, which only :data:`PILCO_SEARCH` optimises. ``estimator`` is a name in
-    :data:`pipps.propagation.config.ESTIMATORS` (its thesis or library variant by
-    ``estimator_choices``) or a composition (:func:`pipps.propagation.config.compose`), used as is.
+    :data:`pipps.propagation.estimators.ESTIMATORS` (its thesis or library variant by
+    ``estimator_choices``) or a composition (:func:`pipps.propagation.estimators.compose`), used as is.
     A :data:`FIXED_SEED` method follows its estimator's gradient by differentiating the fixed
     seed's objective.
     """
@@ -146,7 +146,7 @@ def _choices_matter(name_or_estimator) -> bool:
     """Whether ``estimator_choices`` changes the estimator: its thesis and library variants differ."""
     if not isinstance(name_or_estimator, str):
         return False
-    from pipps.propagation.config import estimator, thesis_estimator
+    from pipps.propagation.estimators import estimator, thesis_estimator
 
     return thesis_estimator(name_or_estimator) != estimator(name_or_estimator)
 
@@ -195,7 +195,7 @@ def get_method(name: str) -> Method:
 
 def method_estimator(method: Method, choices: str):
     """The estimator ``method`` follows with ``estimator_choices=choices`` (thesis or library)."""
-    from pipps.propagation.config import estimator, thesis_estimator
+    from pipps.propagation.estimators import estimator, thesis_estimator
 
     if method.estimator is None:
         raise ValueError(f"{method.name} has no particle estimator (it differentiates its moment-matching objective)")

@@ -121,13 +121,24 @@ def check_memory(cfg: ExperimentConfig, *, seeds: int = 1, processes: int = 1, o
     return need
 
 
-def noise_limit(task: str, preset: str, data_points: int) -> float:
-    """The largest noise multiplier k whose observation noise stays representable (module doc)."""
-    from pipps.tasks.presets import make_task
+def _base_noise(task: str, preset: str) -> float:
+    """The largest observation-noise standard deviation of ``task`` at k = 1."""
+    from pipps.tasks.registry import get_task
 
-    base = float(np.max(make_task(task, preset=preset, k=1.0).simulator.obs_noise_std))
+    return float(np.max(get_task(task).make(preset, 1.0).simulator.obs_noise_std))
+
+
+def noise_limit(task: str, preset: str, data_points: int) -> float:
+    """The largest noise multiplier k whose observation noise stays representable (module doc);
+    infinite for a task without observation noise (any k leaves it at 0)."""
+    base = _base_noise(task, preset)
+    if base == 0.0:
+        return math.inf
     bound = math.sqrt(np.finfo(np.float64).max / (4.0 * max(data_points, 1)))
-    return (bound / (10.0 * base)) ** 2
+    try:
+        return (bound / (10.0 * base)) ** 2
+    except OverflowError:  # a small noise and few data points: no k of a float64 overflows
+        return math.inf
 
 
 def check_noise(task: str, preset: str, k: float, data_points: int, option: str = "--k") -> None:
@@ -137,9 +148,7 @@ def check_noise(task: str, preset: str, k: float, data_points: int, option: str 
         raise ConfigError(f"{option}: the noise multiplier must be a finite number >= 0, got {k!r}")
     limit = noise_limit(task, preset, data_points)
     if k > limit:
-        from pipps.tasks.presets import make_task
-
-        base = float(np.max(make_task(task, preset=preset, k=1.0).simulator.obs_noise_std))
+        base = _base_noise(task, preset)
         raise ConfigError(f"{option} {k:g}: the observation noise's standard deviation √k·σ reaches "
                           f"{math.sqrt(k) * base:.3g}, and observations that large overflow float64 when squared "
                           f"and summed over {data_points} data points; k must stay below {limit:.3g}")
@@ -149,9 +158,15 @@ def check_experiment(cfg: ExperimentConfig, *, seeds: int = 1, processes: int = 
                      k: str = "--k") -> float:
     """Both checks for one configuration, naming the options ``particles`` and ``k`` when they fail;
     returns the memory estimate (bytes)."""
+    from pipps.experiments.programs import check_moment_matching
     from pipps.experiments.state import make_experiment_task
 
-    horizon = int(cfg.horizon or make_experiment_task(cfg).problem.horizon)
+    problem = make_experiment_task(cfg).problem
+    try:
+        check_moment_matching(cfg, problem)
+    except ValueError as err:
+        raise ConfigError(f"method: {err}") from None
+    horizon = int(cfg.horizon or problem.horizon)
     check_noise(cfg.task, cfg.preset, cfg.k, cfg.num_trials * horizon, option=k)
     option = particles if not cfg.is_pilco else "--set num_inducing/fitc_threshold"
     return check_memory(cfg, seeds=seeds, processes=processes, option=option)

@@ -9,6 +9,11 @@ unbatched run computes exactly what it always did. :class:`Programs` builds ever
 experiment (or batch) and reuses it across trials. The rollouts and their evaluation take the
 :class:`~pipps.tasks.base.Task` (its simulator and, for the cost and the policy input, its problem);
 the policy optimisation and the prediction plan, so they take only ``task.problem``.
+
+A true system stepped from Python (a :class:`~pipps.tasks.base.HostSimulator`, e.g. a gymnasium
+environment) cannot be compiled: its trials and evaluations are plain functions that step it
+(:func:`pipps.rollout.host_rollout`), one seed at a time; the compiled path of a simulated system
+is the same program it always was.
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ from pipps.experiments.config import ExperimentConfig
 from pipps.experiments.methods import FIXED_SEED, MOMENTUM, PILCO_SEARCH, particle_method, rollout_config
 from pipps.experiments.records import Diagnostics, MomentPrediction, ParticlePrediction, SearchTrace, StepTrace
 from pipps.gp import fit
-from pipps.rollout import rollout
+from pipps.rollout import rollout, rollouts
 from pipps.tasks.base import Problem, Task
 
 Progress = Callable[[dict[str, Any]], None]
@@ -58,22 +63,21 @@ class OneSeed:
 ONE_SEED = OneSeed()
 
 
-def balance_settings(cfg: ExperimentConfig) -> tuple[int, float, float]:
-    """The cart-pole's physical criterion of ``cfg`` as :func:`pipps.experiments.criteria.balanced` takes it."""
-    return cfg.balance_steps, cfg.balance_angle, cfg.balance_position
+def success_rule(cfg: ExperimentConfig):
+    """The task's rule per evaluation rollout under ``cfg``'s settings
+    (:attr:`pipps.tasks.Success.rule`): what a trial's ``eval_balanced`` records."""
+    return cfg.task_spec.success_for(cfg).rule
 
 
-def evaluate_rollouts(keys, task: Task, policy, balance: tuple[int, float, float] | None = None):
-    """(returns, upright, balanced) of one true-system rollout per key with ``policy`` (None: random
-    actions); fallen steps are charged cost 1. ``balanced``: the cart-pole's physical criterion
-    with ``balance = (steps, angle, position)`` (:mod:`pipps.experiments.criteria`); elsewhere, or
-    without ``balance``, the same as ``upright``. Pure."""
-    from pipps.experiments.criteria import balanced, is_cartpole
-
-    trajs = jax.vmap(lambda k: rollout(k, task, policy))(keys)
+def evaluate_rollouts(keys, task: Task, policy, rule=None):
+    """(returns, upright, criterion) of one true-system rollout per key with ``policy`` (None: random
+    actions); fallen steps are charged cost 1. ``criterion``: the task's success rule per rollout
+    (``rule(states, valid)``, :func:`success_rule`); without ``rule`` the same as ``upright``. Pure
+    for a simulated system (jittable); a host-stepped one is stepped from Python."""
+    trajs = rollouts(keys, task, policy)
     fallen_steps = task.problem.horizon - jnp.sum(trajs.valid, axis=-1)
     upright = jnp.all(trajs.valid, axis=-1)
-    ok = balanced(trajs.states, *balance) if balance is not None and is_cartpole(task.problem.name) else upright
+    ok = rule(trajs.states, trajs.valid) if rule is not None else upright
     return trajs.total_cost + fallen_steps, upright, ok
 
 
@@ -105,11 +109,13 @@ class Programs:
 
     def __init__(self, cfg: ExperimentConfig, task: Task, axis=ONE_SEED):
         self.cfg, self.task, self.axis = cfg, task, axis
-        balance = balance_settings(cfg)
-        self.trial_random = axis.compile(lambda k: rollout(k, task, None))
-        self.evaluate_random = axis.compile(lambda keys: evaluate_rollouts(keys, task, None, balance))
-        self.trial = axis.compile(lambda k, p: rollout(k, task, p))
-        self.evaluate = axis.compile(lambda keys, p: evaluate_rollouts(keys, task, p, balance))
+        rule = success_rule(cfg)
+        # a host-stepped system is stepped from Python, seed by seed (batched.check_batchable keeps it unbatched)
+        program = (lambda fn: fn) if task.host_stepped else axis.compile
+        self.trial_random = program(lambda k: rollout(k, task, None))
+        self.evaluate_random = program(lambda keys: evaluate_rollouts(keys, task, None, rule))
+        self.trial = program(lambda k, p: rollout(k, task, p))
+        self.evaluate = program(lambda keys, p: evaluate_rollouts(keys, task, p, rule))
         build = {MOMENTUM: _momentum_optimizer, FIXED_SEED: _fixed_seed_optimizer, PILCO_SEARCH: _pilco_optimizer}
         self.optimize: Optimize = build[cfg.method_spec.optimizer](cfg, task.problem, axis)
 
@@ -132,7 +138,7 @@ def _momentum_optimizer(cfg: ExperimentConfig, problem: Problem, axis) -> Optimi
 
     rcfg, est = particle_method(cfg)
     opt = normalized_momentum(cfg.learning_rate, cfg.momentum)
-    init = axis.compile(lambda k, p, m: init_policy_opt_state(k, p, m, task=problem, config=rcfg, estimator=est,
+    init = axis.compile(lambda k, p, m: init_policy_opt_state(k, p, m, problem=problem, config=rcfg, estimator=est,
                                                                optimizer=opt))
     steps = axis.compile_steps(make_policy_optimizer(problem, rcfg, est, opt))
     predict = axis.compile(lambda k, p, m: predict_particles(k, problem, rcfg, cfg.store_particles, p, m))
@@ -205,7 +211,7 @@ def _fixed_seed_optimizer(cfg: ExperimentConfig, problem: Problem, axis) -> Opti
     del axis
     rcfg = rollout_config(cfg)
     qn = QuasiNewtonConfig(length=-cfg.policy_evals, max_evals_per_linesearch=30)
-    search = jax.jit(lambda key, policy, model: optimize_fixed_seed(key, policy, model, task=problem, config=rcfg,
+    search = jax.jit(lambda key, policy, model: optimize_fixed_seed(key, policy, model, problem=problem, config=rcfg,
                                                                      qn_config=qn))
     predict = jax.jit(lambda key, policy, model: predict_particles(key, problem, rcfg, cfg.store_particles, policy, model))
 
@@ -221,10 +227,19 @@ def _fixed_seed_optimizer(cfg: ExperimentConfig, problem: Problem, axis) -> Opti
     return _per_seed(optimize_one)
 
 
+def check_moment_matching(cfg: ExperimentConfig, problem: Problem) -> None:
+    """Raise ``ValueError`` when ``cfg``'s method plans by moment matching and the task's cost has no
+    Gaussian expectation (``cost.expected(mean, cov)``) to plan with."""
+    if cfg.is_pilco and not callable(getattr(problem.cost, "expected", None)):
+        raise ValueError(f"method {cfg.method}: the cost of {cfg.task} has no Gaussian expectation (expected(mean, "
+                         "cov)) to plan with; use a particle method, or a cost that has one (pipps.costs.SaturatingCost)")
+
+
 def _pilco_optimizer(cfg: ExperimentConfig, problem: Problem, axis) -> Optimize:
     from pipps.pilco import PolicySearchConfig, optimize_policy, pilco_budget, trajectory
 
     del axis
+    check_moment_matching(cfg, problem)
     budget = pilco_budget(problem) if cfg.pilco_linesearches is None else pilco_budget(problem, length=cfg.pilco_linesearches)
     search_cfg = PolicySearchConfig(optimizer=budget, horizon=cfg.horizon, policy_noise=cfg.pilco_policy_noise)
     predict = jax.jit(lambda policy, model: trajectory(problem, policy, model, horizon=cfg.horizon,

@@ -160,8 +160,8 @@ class TrialResult:
     opt_trace: StepTrace | SearchTrace | None = group(StepTrace, SearchTrace, default=None)
     diagnostics: Diagnostics | None = group(Diagnostics, default=None)  # stochastic-gradient particle methods
     predicted: ParticlePrediction | MomentPrediction | None = group(ParticlePrediction, MomentPrediction, default=None)
-    # (R,) bool: the physical criterion per evaluation rollout (cart-pole: balanced at the end,
-    # pipps.experiments.criteria; unicycle: upright); None in files written before it was stored
+    # (R,) bool: the task's success rule per evaluation rollout (pipps.tasks.Success; cart-pole: balanced
+    # at the end, unicycle: upright); None in files written before it was stored
     eval_balanced: np.ndarray | None = array(dtype=bool, compress=False, default=None)
 
     @property
@@ -201,21 +201,7 @@ class ExperimentResult:
 
     @property
     def success(self) -> bool:
-        return self.status == "complete" and judge_success(self.config, self.trials[-1])
+        """The task's verdict on the final trial (:func:`pipps.reporting.verdicts.judge_trial`) of a complete run."""
+        from pipps.reporting.verdicts import judge_trial
 
-
-def judge_success(cfg: ExperimentConfig, trial: TrialResult) -> bool:
-    """The physical verdict (pipps.experiments.criteria): cart-pole, at least ``balanced_fraction``
-    of the evaluation rollouts end balanced; unicycle, at least ``upright_fraction`` stay upright
-    for the episode. A cart-pole trial from a file written before the criterion was stored has no
-    per-rollout flags: it falls back to the return verdict (``pipps table`` re-simulates those)."""
-    if cfg.task == "unicycle":
-        return trial.upright_fraction >= cfg.upright_fraction
-    if trial.eval_balanced is None:
-        return judge_return(cfg, trial)
-    return trial.balanced_fraction >= cfg.balanced_fraction
-
-
-def judge_return(cfg: ExperimentConfig, trial: TrialResult) -> bool:
-    """The thesis' return verdict: the final evaluated return below ``success_threshold`` (cart-pole)."""
-    return trial.eval_return < cfg.success_threshold
+        return self.status == "complete" and judge_trial(self.config, self.trials[-1])

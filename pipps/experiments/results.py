@@ -6,7 +6,7 @@ The schema (version :data:`SCHEMA_VERSION`) is documented in docs/results-schema
                                   config_json, checksum, wall_seconds, num_trials_done,
                                   final_return, success
     /config                attrs: every ExperimentConfig field (None stored as "__none__")
-    /versions              attrs: pipps, jax, jaxlib, numpy, h5py, python, platform, device
+    /versions              attrs: pipps, jax, jaxlib, numpy, h5py, python, platform, device, host
     /eval_return           (n,) mean evaluation return per finished trial
     /upright_fraction      (n,)
     /trials/NNN            a TrialResult (pipps.experiments.records); attrs kind, eval_return, upright_fraction
@@ -43,8 +43,9 @@ from typing import Any
 import h5py
 import numpy as np
 
-from pipps.experiments.config import ExperimentConfig, config_difference, config_hash, from_dict, same_experiment
-from pipps.experiments.records import ExperimentResult, TrialResult, judge_return, required_fields
+from pipps.experiments.config import (ExperimentConfig, UnavailableTask, config_difference, config_hash, from_dict,
+                                      same_experiment, stored_dict)
+from pipps.experiments.records import ExperimentResult, TrialResult, required_fields
 
 SCHEMA_VERSION = 1
 _TRIAL_ARRAYS = ("states", "observations", "actions", "costs", "valid", "eval_returns", "eval_upright", "policy")
@@ -68,7 +69,8 @@ def versions() -> dict[str, str]:
         device = "unknown"
     return {"pipps": pipps.__version__, "code": code_version(), "jax": jax.__version__, "jaxlib": jaxlib.__version__,
             "numpy": np.__version__, "h5py": _h5py.__version__, "python": sys.version.split()[0],
-            "platform": platform.platform(), "device": device}
+            "platform": platform.platform(), "device": device,
+            "host": platform.node()}  # the machine (a cluster's node) that wrote the file, i.e. ran its last trial
 
 
 @functools.cache
@@ -116,7 +118,7 @@ def _checksum(config_json: str, trials) -> str:
 
 
 def _config_json(cfg: ExperimentConfig) -> str:
-    return json.dumps(cfg.to_dict(), sort_keys=True)
+    return json.dumps(stored_dict(cfg), sort_keys=True)
 
 
 def _write_loose(group: h5py.Group, name: str, value: Any) -> None:
@@ -155,6 +157,8 @@ def _write_trial(group: h5py.Group, t: TrialResult) -> None:
 
 def write_result(path: str | os.PathLike, result: ExperimentResult) -> None:
     """Write ``result`` to ``path`` atomically (temporary file, fsync, rename)."""
+    from pipps.reporting.verdicts import criterion, judge_return
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
@@ -171,14 +175,14 @@ def write_result(path: str | os.PathLike, result: ExperimentResult) -> None:
             f.attrs["num_trials_done"] = len(result.trials)
             f.attrs["final_return"] = float(result.final_return)
             f.attrs["success"] = bool(result.success)
-            if result.config.task != "unicycle":  # the return threshold is the cart-pole's
+            if criterion(result.config).threshold is not None:  # a task with a return threshold (the cart-pole's)
                 f.attrs["return_success"] = bool(result.status == "complete" and result.trials
                                                  and judge_return(result.config, result.trials[-1]))
             f.attrs["checksum"] = _checksum(cfg_json, [dict(eval_returns=t.eval_returns, policy=t.policy)
                                                        for t in result.trials])
             f.create_group("config").attrs.update(
                 {k: (NONE if v is None else (list(v) if isinstance(v, tuple) else v))
-                 for k, v in result.config.to_dict().items()})
+                 for k, v in stored_dict(result.config).items()})
             f.create_group("versions").attrs.update(versions())
             f.create_dataset("eval_return", data=np.array([t.eval_return for t in result.trials], dtype=float))
             f.create_dataset("upright_fraction", data=np.array([t.upright_fraction for t in result.trials], dtype=float))
@@ -226,7 +230,7 @@ def verify_result(path: Path) -> tuple[str, ExperimentConfig, int]:
             if _checksum(cfg_json, trials) != f.attrs.get("checksum"):
                 raise ResultError(f"{path}: checksum mismatch (the file was altered or damaged)")
             error = str(f.attrs.get("error", ""))
-    except ResultError:
+    except (ResultError, UnavailableTask):  # an intact file whose task is not available here says so, not "unreadable"
         raise
     except Exception as err:  # h5py raises OSError/KeyError/... on damaged files
         raise ResultError(f"{path}: unreadable result file ({type(err).__name__}: {err})") from err

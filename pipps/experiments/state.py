@@ -22,28 +22,22 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from pipps.experiments.config import QUICK_CENTRE_HIGH, QUICK_CENTRE_LOW, ExperimentConfig
+from pipps.experiments.config import ExperimentConfig
 from pipps.experiments.records import ExperimentResult, GPRecord, TrialResult
 from pipps.gp import FitState, GPConfig, GPData, GPHyper, make_data, pad_to_capacity
 from pipps.policies import init_linear_policy, init_pilco_rbf_policy, init_rbf_policy, init_rbf_policy_uniform
 from pipps.rollout import Trajectory, training_pairs
 from pipps.tasks.base import Problem, Task
-from pipps.tasks.presets import make_task
 
 # -- the experiment's fixed pieces -------------------------------------------------------------------
 
 
 def make_experiment_task(cfg: ExperimentConfig) -> Task:
-    """The task of an experiment (cost, noise multiplier, horizon): its planning problem and its simulator."""
+    """The task of an experiment (task preset, noise multiplier, cost and its scale, horizon): its
+    planning problem and its true system, as the task's record builds them
+    (:meth:`pipps.tasks.TaskSpec.make`)."""
     overrides = {} if cfg.horizon is None else {"horizon": cfg.horizon}
-    cost = cfg.cost
-    if cfg.cost_scale != 1.0:
-        import pipps.costs
-
-        if (cost or "angle") != "angle" or cfg.task == "unicycle":
-            raise ValueError("cost_scale: only the cart-pole Angle Cost takes a scale")
-        cost = pipps.costs.cartpole_angle_cost(scale=cfg.cost_scale)
-    return make_task(cfg.task, preset=cfg.preset, k=cfg.k, cost=cost, **overrides)
+    return cfg.task_spec.make(cfg.preset, cfg.k, cfg.cost, cfg.cost_scale, **overrides)
 
 
 def policy_start_moments(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
@@ -72,9 +66,12 @@ def init_policy(key: jax.Array, cfg: ExperimentConfig, problem: Problem):
     if cfg.policy == "pilco_rbf":
         return init_pilco_rbf_policy(key, cfg.num_basis, mean, cov, problem.u_max)
     if cfg.policy_init == "uniform":
-        if d != len(QUICK_CENTRE_LOW):
-            raise ValueError("policy_init=uniform needs the raw 4-dim cart-pole policy input (thesis preset)")
-        return init_rbf_policy_uniform(key, cfg.num_basis, QUICK_CENTRE_LOW, QUICK_CENTRE_HIGH, problem.u_max,
+        box = cfg.task_spec.centre_box
+        if box is None or d != len(box[0]):
+            raise ValueError(f"policy_init=uniform needs the task's centre box over its {d}-dim policy input; "
+                             f"{cfg.task} under task preset {cfg.preset} has " + ("none" if box is None else
+                                                                                   f"one of {len(box[0])} dims"))
+        return init_rbf_policy_uniform(key, cfg.num_basis, box[0], box[1], problem.u_max,
                                        log_lambda=lam, weight_scale=cfg.weight_scale)
     return init_rbf_policy(key, cfg.num_basis, mean, cov, problem.u_max, log_lambda=lam,
                            weight_scale=cfg.weight_scale)

@@ -17,7 +17,7 @@ from pipps.pilco.controller import (
     unsquashed_moments,
 )
 from pipps.pilco.gp_moments import gp_moments, se_moments
-from pipps.pilco.optimize import PILCO_BUDGETS, PolicySearchConfig, optimize_policy, pilco_budget
+from pipps.pilco.optimize import DEFAULT_BUDGET, PolicySearchConfig, optimize_policy, pilco_budget
 from pipps.pilco.propagate import (
     PilcoTrajectory,
     dynamics_moments,
@@ -31,7 +31,7 @@ from pipps.pilco.propagate import (
 from pipps.pilco.saturation import saturation_moments
 
 __all__ = [
-    "PILCO_BUDGETS", "PilcoTrajectory", "PolicySearchConfig", "RBF_SECOND_MOMENT_JITTER",
+    "DEFAULT_BUDGET", "PilcoTrajectory", "PolicySearchConfig", "RBF_SECOND_MOMENT_JITTER",
     "control_moments", "dynamics_moments", "gp_moments", "linear_controller_moments", "objective",
     "optimize_policy", "pilco_budget", "policy_input_noise", "propagate", "rbf_controller_moments",
     "saturation_moments", "se_moments", "state_control_joint", "step_moments", "trajectory", "unsquashed_moments",

@@ -2,13 +2,14 @@
 
 ``optimize_policy(task, model, policy)`` minimises ``J(θ) = Σ_{t=1..H} E[c(x_t)]`` over the
 policy's parameters (its pytree leaves; ``u_max`` is static) with :func:`pipps.optimizers.minimize`,
-warm-started from the given policy. Default budgets are PILCO's (tasks.md §2, §3.7):
+warm-started from the given policy. The budget is the problem's own (``Problem.pilco_budget``,
+set by its task); the built-in tasks carry PILCO's (tasks.md §2, §3.7):
 
 | task | budget | evaluations per line search |
 |---|---|---|
 | cart-pole (swing-up, balance) | 150 line searches | 30 |
 | unicycle | 150 evaluations (``length = −150``) | 20 |
-| anything else | 100 line searches | 10 (minimize.m's default) |
+| a problem without a budget | 100 line searches | 10 (minimize.m's default) |
 
 The whole optimisation is one jitted program (compiled once per task object, policy structure
 and model shapes).
@@ -25,11 +26,7 @@ from pipps.optimizers.quasi_newton import QuasiNewtonConfig, QuasiNewtonTrace, m
 from pipps.pilco.propagate import objective
 from pipps.tasks.base import Problem
 
-PILCO_BUDGETS: dict[str, tuple[int, int]] = {
-    "cartpole_swingup": (150, 30),
-    "cartpole_balance": (150, 30),
-    "unicycle": (-150, 20),
-}
+#: minimize.m's default budget, for a problem that sets none: 100 line searches of at most 10 evaluations
 DEFAULT_BUDGET = (100, 10)
 
 
@@ -57,8 +54,9 @@ class PolicySearchConfig:
 
 
 def pilco_budget(task: Problem, **overrides) -> QuasiNewtonConfig:
-    """PILCO's policy-search budget for ``task`` (see the module table), with optional overrides."""
-    length, per_ls = PILCO_BUDGETS.get(task.name, DEFAULT_BUDGET)
+    """PILCO's policy-search budget for ``task``: its ``pilco_budget`` or :data:`DEFAULT_BUDGET` (see
+    the module table), with optional overrides."""
+    length, per_ls = task.pilco_budget or DEFAULT_BUDGET
     settings = dict(length=length, max_evals_per_linesearch=per_ls)
     settings.update(overrides)
     return QuasiNewtonConfig(**settings)

@@ -9,6 +9,7 @@ upright. The control is a scalar force u (N) on the cart, passed as shape ``(1,)
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -71,3 +72,29 @@ def cartpole_energy(s: jax.Array, params: CartPoleParams = CARTPOLE_PARAMS) -> j
 def cartpole_sim_to_model(s: jax.Array) -> jax.Array:
     """The cart-pole's model state is its simulator state (tasks.md §2)."""
     return s
+
+
+# -- success: balanced at the end (docs/results-analyses.md "The physical criterion") -----------------
+
+#: The physical criterion's default bounds (the ExperimentConfig settings of the same names set them
+#: per experiment): the last second at dt = 0.1 s, 0.3 rad of the pole, 0.5 m of the cart; and the
+#: fraction of an experiment's final evaluation rollouts that must be balanced.
+BALANCE_STEPS = 10
+BALANCE_ANGLE = 0.3
+BALANCE_POSITION = 0.5
+BALANCED_FRACTION = 0.5
+
+
+def balanced(states, steps: int = BALANCE_STEPS, angle: float = BALANCE_ANGLE, position: float = BALANCE_POSITION):
+    """Per rollout: pole within ``angle`` of upright and cart within ``position`` of the centre in
+    each of the last ``steps`` states. ``states``: (..., H+1, 4) cart-pole simulator states
+    ``[x_c, v, ω, θ]`` with θ = π upright. Works on numpy and JAX arrays (pure).
+
+    The thesis judged a swing-up a success when "the pendulum was swung up and kept balanced"; a
+    return threshold alone passes a policy that swings up and then runs the cart away, so the
+    statement itself is checked, the angle wrapped (either swing direction counts)."""
+    xp = jnp if isinstance(states, jnp.ndarray) and not isinstance(states, np.ndarray) else np
+    last = states[..., -steps:, :]
+    off_upright = xp.abs(xp.mod(last[..., 3], 2 * math.pi) - math.pi)  # distance to θ = π (mod 2π)
+    ok = (off_upright <= angle) & (xp.abs(last[..., 0]) <= position)
+    return xp.all(ok, axis=-1)

@@ -87,6 +87,7 @@ def _cartpole_fields(name: str, preset: str) -> dict[str, Any]:
         ode=cp.cartpole_ode,
         sim_to_model=cp.cartpole_sim_to_model,
         fallen=None,
+        pilco_budget=(150, 30),  # PILCO's: 150 line searches of at most 30 evaluations (tasks.md §2)
     )
     if preset == "thesis":
         # raw state into GP and policy (tasks.md §8: the 104-parameter count)
@@ -132,6 +133,7 @@ def _unicycle_fields(preset: str) -> dict[str, Any]:
         ode=uc.unicycle_ode,
         sim_to_model=uc.unicycle_sim_to_model,
         fallen=uc.unicycle_fallen,
+        pilco_budget=(-150, 20),  # PILCO's: 150 evaluations, at most 20 per line search (tasks.md §3.7)
     )
 
 
@@ -272,6 +274,6 @@ def make_task(name: str, preset: str = "thesis", k: float = 1.0, cost: str | Cos
     _validate(fields)
     fields["cost"] = make_cost(name, cost, preset)
     fields["noise_multiplier"] = k
-    problem = Problem(**{f: fields[f] for f in _fields_of(Problem)})
-    simulator = Simulator(**{f: fields[f] for f in _fields_of(Simulator)})
+    problem = Problem(**{f: fields[f] for f in _fields_of(Problem) if f in fields})
+    simulator = Simulator(**{f: fields[f] for f in _fields_of(Simulator) if f in fields})
     return Task(problem, simulator, preset=preset)

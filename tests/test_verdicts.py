@@ -1,4 +1,4 @@
-"""The physical success criterion and the verdict statistics (pipps.experiments.criteria, docs/results.md)."""
+"""The physical success criterion, the verdict and its statistics (pipps.reporting.verdicts, docs/results.md)."""
 
 from __future__ import annotations
 
@@ -10,14 +10,11 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-from pipps.experiments.criteria import (
-    Resimulator,
-    balanced,
-    flip_probability_fraction,
-    flip_probability_return,
-)
+from pipps.experiments.resimulate import Resimulator
 from pipps.experiments.results import read_result, read_summary
-from pipps.experiments.tables import difference_interval, fisher_exact, judge, wilson_interval
+from pipps.reporting.tables import difference_interval, fisher_exact, judge, wilson_interval
+from pipps.reporting.verdicts import flip_probability_fraction, flip_probability_return
+from pipps.tasks.cartpole import balanced
 
 RESULTS = Path(__file__).resolve().parents[1] / "results/thesis"
 

@@ -6,10 +6,16 @@
   such figure);
 * :func:`record_curves` — one panel per table cell: the evaluated return per trial over the cell's
   seeds (median, interquartile band, each seed), with the success threshold (the learning-efficiency
-  plots of thesis Figs. 4.16/4.17, per cell); for the unicycle, whose success is judged on the
-  fraction of upright rollouts, that fraction per trial too;
-* :func:`record_diagnostics` — per experiment group, the final trial's predicted angle trajectories
-  against the real rollout, TP's k_LR per time step and the per-step gradient variances (ours).
+  plots of thesis Figs. 4.16/4.17, per cell); for a task without a return threshold (the unicycle),
+  whose success is judged on the fraction of rollouts meeting its criterion, that fraction per
+  trial too;
+* :func:`record_diagnostics` — per experiment group, the final trial's predicted trajectories of
+  the task's panel component (:class:`pipps.tasks.PlotInfo`: the cart-pole's pole angle, the
+  unicycle's wheel pitch) against the real rollout, TP's k_LR per time step and the per-step
+  gradient variances (ours).
+
+What differs between tasks comes from the task's record (:class:`pipps.tasks.TaskSpec`): its
+success criterion (:mod:`pipps.reporting.verdicts`) and its :class:`~pipps.tasks.PlotInfo`.
 """
 
 from __future__ import annotations
@@ -22,14 +28,12 @@ import numpy as np
 from pipps import charts as ch
 from pipps.experiments.methods import METHODS
 from pipps.experiments.records import ExperimentResult, MomentPrediction, ParticlePrediction
-from pipps.experiments.tables import Cell, CellResult, Table, quartiles, seed_returns
+from pipps.reporting.tables import Cell, CellResult, Table, quartiles, seed_returns
+from pipps.reporting.verdicts import criterion, reads_upright
 
 PANEL = (480.0, 340.0)
 #: one colour per experiment group in the diagnostics figure
 PALETTE = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189), (140, 86, 75)]
-#: which model-state component is the angle drawn in the predictions, the true state's index of it, and its label
-ANGLE_INDEX = {"cartpole_swingup": (3, 3, "pole angle θ (rad)"), "cartpole_balance": (3, 3, "pole angle θ (rad)"),
-               "unicycle": (9, 10, "wheel pitch ψ_f (rad)")}
 
 
 def method_color(method: str):
@@ -75,7 +79,7 @@ def _dodge(i: int, n: int) -> float:
 
 
 def record_cells(tables: list[tuple[Table, list[CellResult]]], out: str | Path) -> Path:
-    """Recording of :func:`cells_figure`; ``tables`` pairs each table with :func:`pipps.experiments.tables.collect`'s cells."""
+    """Recording of :func:`cells_figure`; ``tables`` pairs each table with :func:`pipps.reporting.tables.collect`'s cells."""
     fig = cells_figure(tables)
     with ch.recording(out, "pipps-cells", ch.blueprint(fig)) as rec:
         ch.draw(rec, fig)
@@ -116,42 +120,46 @@ def curves_figure(table: Table, cells: list[tuple[Cell, list[dict[str, Any]]]]) 
         raise ValueError(f"table {table.name}: no cell has results to draw")
     rows = [row for row in table.rows if any(c.row == row for c, _ in cells)]
     methods = [m for m in table.methods if any(c.method == m for c, _ in cells)]
-    unicycle = table.task == "unicycle"
     returns = [seed_returns(rs) for _, rs in cells]
     cfg = cells[0][1][0]["config"]
+    success, plot = criterion(cfg), cfg.task_spec.plot
+    fractions = success.threshold is None  # judged by its criterion alone: its fraction per trial beside the return
     trials = max(r.shape[1] for r in returns)
     first = "0" if cfg.num_random == 1 else f"0–{cfg.num_random - 1}"
     x = ch.Axis(f"trial ({first}: random actions)", -0.5, trials - 0.5)
-    ylabel = "evaluated return (total cost, mean of 30 rollouts)"
-    if unicycle:
+    ylabel = f"evaluated return (total cost, mean of {cfg.eval_rollouts} rollouts)"
+    include = [0.0] if success.threshold is None else [0.0, success.threshold]
+    if plot.log_returns:
         y = ch.Axis(ylabel, *ch.data_range(returns, log=True), log=True)
     else:
-        y = ch.Axis(ylabel, *ch.data_range(returns, include=[0.0, cfg.success_threshold], pad=0.04))
+        y = ch.Axis(ylabel, *ch.data_range(returns, include=include, pad=0.04))
     by = {(c.row, c.method): (c, rs) for c, rs in cells}
     charts = []
     for row in rows:
         for m in methods:
             c, rs = by.get((row, m), (None, []))
-            name = f"{'' if unicycle else row + ', '}{METHODS[m].label}"
+            name = f"{row + ', ' if table.row_in_titles else ''}{METHODS[m].label}"
             path = f"curves/{row}_{m}".replace(" ", "").replace("=", "").replace(".", "p").replace("⁻", "m")
             seeds = f"{len(rs)} seed{'s' if len(rs) != 1 else ''}" if rs else "no results"
             charts.append(ch.chart(path, f"{name}: {seeds}", x, y, PANEL))
-            if unicycle:
-                charts.append(ch.chart(f"{path}_upright", f"{name}: rollouts upright, {seeds}", x,
-                                       ch.Axis("fraction of the 30 rollouts upright", -0.04, 1.04), PANEL))
+            if fractions:
+                charts.append(ch.chart(f"{path}_{success.name}", f"{name}: rollouts {success.name}, {seeds}", x,
+                                       ch.Axis(f"fraction of the {cfg.eval_rollouts} rollouts {success.name}", -0.04,
+                                               1.04), PANEL))
     keys = [ch.Key("median over seeds", ch.BLACK), ch.Key("25–75 % of seeds", ch.lighter(ch.BLACK, 0.8), "band"),
             ch.Key("each seed", ch.lighter(ch.BLACK, 0.55), "line")]
-    if unicycle:
-        keys.append(ch.Key(f"success: ≥ {cfg.upright_fraction:.0%} of the final trial's rollouts upright", ch.GREY, "dash"))
+    if fractions:
+        keys.append(ch.Key(f"success: ≥ {success.fraction:.0%} of the final trial's rollouts {success.name}", ch.GREY,
+                           "dash"))
     else:
-        keys.append(ch.Key(f"thesis' success threshold: return < {cfg.success_threshold:g} (ours: the physical criterion)",
+        keys.append(ch.Key(f"thesis' success threshold: return < {success.threshold:g} (ours: the physical criterion)",
                            ch.GREY, "dash"))
-    return ch.figure(charts, len(methods) * (2 if unicycle else 1), keys, "curves/legend")
+    return ch.figure(charts, len(methods) * (2 if fractions else 1), keys, "curves/legend")
 
 
 def record_curves(table: Table, cells: list[tuple[Cell, list[dict[str, Any]]]], out: str | Path) -> Path:
     """Recording of :func:`curves_figure`; ``cells`` pairs each cell with its counted result summaries
-    (:func:`pipps.experiments.tables.cell_summaries`)."""
+    (:func:`pipps.reporting.tables.cell_summaries`)."""
     fig = curves_figure(table, cells)
     with ch.recording(out, "pipps-curves", ch.blueprint(fig)) as rec:
         ch.draw(rec, fig)
@@ -159,21 +167,30 @@ def record_curves(table: Table, cells: list[tuple[Cell, list[dict[str, Any]]]], 
         rows = [row for row in table.rows if any(c.row == row and rs for c, rs in cells)]
         methods = [m for m in table.methods if any(c.method == m and rs for c, rs in cells)]
         lookup = {(c.row, c.method): rs for c, rs in cells if rs}
+        success = criterion(next(iter(lookup.values()))[0]["config"])
         for row in rows:
             for m in methods:
                 rs = lookup.get((row, m), [])
-                panels = [next(charts)] + ([next(charts)] if table.task == "unicycle" else [])
+                panels = [next(charts)] + ([next(charts)] if success.threshold is None else [])
                 if not rs:
                     continue
-                cfg = rs[0]["config"]
+                success = criterion(rs[0]["config"])
                 _draw_spread(rec, panels[0], seed_returns(rs), method_color(m))
-                if table.task == "unicycle":
-                    n = min(len(s["upright_fraction"]) for s in rs)
-                    _draw_spread(rec, panels[1], np.array([s["upright_fraction"][:n] for s in rs], dtype=float), method_color(m))
-                    _hline(rec, panels[1], cfg.upright_fraction)
+                if success.threshold is None:
+                    series = _criterion_series(rs, success)
+                    n = min(len(f) for f in series)
+                    _draw_spread(rec, panels[1], np.array([f[:n] for f in series], dtype=float), method_color(m))
+                    _hline(rec, panels[1], success.fraction)
                 else:
-                    _hline(rec, panels[0], cfg.success_threshold)
+                    _hline(rec, panels[0], success.threshold)
     return Path(out)
+
+
+def _criterion_series(rs: list[dict[str, Any]], success) -> list[np.ndarray]:
+    """Each result's fraction of evaluation rollouts meeting the criterion, per trial: the stored
+    ``upright_fraction`` for a "never fell" rule (every file has it), else ``balanced_fraction``."""
+    key = "upright_fraction" if reads_upright(success) else "balanced_fraction"
+    return [np.asarray(s[key], dtype=float) for s in rs]
 
 
 def _draw_spread(rec, c: ch.Chart, values: np.ndarray, color) -> None:
@@ -194,12 +211,11 @@ def _hline(rec, c: ch.Chart, y: float) -> None:
 
 def group_label(r: ExperimentResult) -> str:
     """A group's name for a reader: method, k, and the settings that set it apart."""
-    from pipps.tasks.presets import DEFAULT_COST
-
     c = r.config
-    cost = c.cost or DEFAULT_COST[(c.task, c.preset)]
+    spec = c.task_spec
+    cost = c.cost or spec.default_cost(c.preset)
     text = f"{METHODS[c.method].label}, k = {c.k:g}"
-    if c.task != "unicycle":
+    if len(spec.costs) > 1:  # the cost sets groups apart only where the task has several
         text += f", {cost} cost"
     if c.centre_std is None and c.policy == "rbf" and c.policy_init == "start":
         text += ", start-state centres"
@@ -228,14 +244,29 @@ def diagnostics_figure(groups: list[tuple[str, ExperimentResult]]) -> ch.Figure:
     return ch.figure(charts, min(3, len(charts)), keys, "diagnostics/legend")
 
 
-def prediction_chart(path: str, title: str, r: ExperimentResult, size=PANEL) -> ch.Chart:
-    """A chart of the final trial's angle against time (s), its range fitted to the real rollout and the prediction."""
-    from pipps.experiments.loop import make_experiment_task
+def _panel(r: ExperimentResult) -> tuple[int, np.ndarray, str, float]:
+    """The task's panel component (:class:`pipps.tasks.PlotInfo`): its model-state index, the real
+    rollout's values of it, its label, and the control interval."""
+    from pipps.experiments.state import make_experiment_task
 
+    plot = r.config.task_spec.plot
+    task = make_experiment_task(r.config)
     final = r.trials[-1]
-    idx, real_idx, label = ANGLE_INDEX[r.config.task]
-    dt = make_experiment_task(r.config).problem.dt
-    values = [final.states[:, real_idx]]
+    if plot.panel_true is not None:
+        real = final.states[:, plot.panel_true]
+    else:  # the real rollout in the model state's coordinates
+        import jax
+
+        real = np.asarray(jax.vmap(task.simulator.sim_to_model)(np.asarray(final.states)))[:, plot.panel]
+    return plot.panel, np.asarray(real), plot.label(plot.panel), task.problem.dt
+
+
+def prediction_chart(path: str, title: str, r: ExperimentResult, size=PANEL) -> ch.Chart:
+    """A chart of the final trial's panel component (the angle) against time (s), its range fitted to
+    the real rollout and the prediction."""
+    final = r.trials[-1]
+    idx, real, label, dt = _panel(r)
+    values = [real]
     pred = final.predicted
     if isinstance(pred, ParticlePrediction):
         values.append(pred.particles[:, :, idx])
@@ -272,12 +303,9 @@ def record_diagnostics(groups: list[tuple[str, ExperimentResult]], out: str | Pa
 
 
 def draw_prediction(rec, c: ch.Chart, r: ExperimentResult, color) -> None:
-    """The final trial's predicted angle (particles, or PILCO's mean ± 2 sd) and the real rollout."""
-    from pipps.experiments.loop import make_experiment_task
-
+    """The final trial's predicted panel component (particles, or PILCO's mean ± 2 sd) and the real rollout."""
     final = r.trials[-1]
-    idx, real_idx, _ = ANGLE_INDEX[r.config.task]
-    dt = make_experiment_task(r.config).problem.dt
+    idx, real_all, _, dt = _panel(r)
     pred = final.predicted
     if isinstance(pred, ParticlePrediction):
         x = pred.particles[:, :, idx]
@@ -291,5 +319,5 @@ def draw_prediction(rec, c: ch.Chart, r: ExperimentResult, color) -> None:
         for k in (-2.0, 2.0):
             ch.line(rec, c, f"gaussian/{'lo' if k < 0 else 'hi'}", t, m + k * s, color, width=1.0, dash=True)
     valid = np.concatenate([[True], np.asarray(final.valid, bool)])
-    real = final.states[valid][:, real_idx]
+    real = real_all[valid]
     ch.line(rec, c, "real", np.arange(len(real)) * dt, real, ch.BLACK, width=1.6, order=20.0)

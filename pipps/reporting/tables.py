@@ -1,9 +1,11 @@
-"""The thesis' success-rate tables (Tables 4.1–4.4, experiments.md) as sweep presets and as reports.
+"""The success-rate tables: the thesis' (Tables 4.1–4.4, experiments.md), and one per task of your own.
 
 Each table is a list of cells; a cell is a set of configuration values (task, cost, k, method)
 and the thesis' success rate. ``table_configs(table, seeds, preset)`` expands a table into the
 configurations of a sweep; ``render_table(table, summaries)`` prints our success rate with its
-95 % Wilson interval and the number of seeds next to the thesis value, as markdown.
+95 % Wilson interval and the number of seeds next to the thesis value, as markdown. A task that
+no thesis table has gets its own (:func:`task_table`: methods against k, no thesis values).
+Whether an experiment succeeded is its task's verdict (:mod:`pipps.reporting.verdicts`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ class Table:
     rows: tuple[str, ...]
     methods: tuple[str, ...]
     cells: tuple[Cell, ...]
+    row_in_titles: bool = True  # the figures name a panel's row (False: a table of one row named after its task)
+    thesis: bool = True  # one of the thesis' tables (False: a task's own, without thesis values)
 
 
 def _k_label(k: float) -> str:
@@ -103,7 +107,7 @@ TABLES: dict[str, Table] = {
                  [0.01, 1.0], _T42_METHODS, _T42),
     "4.3": _table_43(),
     "4.4": Table("4.4", "Table 4.4 — unicycle balancing", "unicycle", ("unicycle",), _T44_METHODS,
-                 tuple(Cell("unicycle", m, (), v) for m, v in zip(_T44_METHODS, _T44))),
+                 tuple(Cell("unicycle", m, (), v) for m, v in zip(_T44_METHODS, _T44)), row_in_titles=False),
     "q001": _extra(),
     "del": _del(),
 }
@@ -113,6 +117,29 @@ def get_table(name: str) -> Table:
     if name not in TABLES:
         raise ValueError(f"unknown table {name!r}; choose one of {', '.join(TABLES)}")
     return TABLES[name]
+
+
+def task_table(task: str, ks=(1.0,), methods=("tp",)) -> Table:
+    """The table of a task no thesis table has: one row per noise multiplier in ``ks``, one column
+    per method in ``methods`` (registry order), no thesis values. Its cells take the task's
+    default cost, so it counts the results of any cost only where the task has one."""
+    ks = sorted({float(k) for k in ks})
+    methods = tuple(m for m in METHODS if m in set(methods))
+    rows = tuple(f"k = {_k_label(k)}" for k in ks)
+    cells = tuple(Cell(row, m, (("k", k),), None) for row, k in zip(rows, ks) for m in methods)
+    return Table(task, f"Task {task} — success rate per method and noise multiplier (no thesis values)", task, rows,
+                 methods, cells, thesis=False)
+
+
+def result_tables(summaries: list[dict[str, Any]]) -> list[Table]:
+    """A :func:`task_table` for each task of ``summaries`` that no thesis table has, with the noise
+    multipliers and methods its results ran."""
+    thesis = {t.task for t in TABLES.values()}
+    by_task: dict[str, list[ExperimentConfig]] = {}
+    for s in summaries:
+        if s["config"].task not in thesis:
+            by_task.setdefault(s["config"].task, []).append(s["config"])
+    return [task_table(task, {c.k for c in cfgs}, {c.method for c in cfgs}) for task, cfgs in by_task.items()]
 
 
 def select_cells(table: Table, methods: Iterable[str] | None = None, ks: Iterable[float] | None = None) -> list[Cell]:
@@ -179,9 +206,7 @@ def _cell_key(values: dict[str, Any], method: str, cfg: ExperimentConfig) -> boo
     for name, v in values.items():
         got = getattr(cfg, name)
         if name == "cost" and got is None:
-            from pipps.tasks.presets import DEFAULT_COST
-
-            got = DEFAULT_COST[(cfg.task, cfg.preset)]
+            got = cfg.task_spec.default_cost(cfg.preset)
         if isinstance(v, float) and isinstance(got, (int, float)):
             if not math.isclose(float(got), v, rel_tol=1e-9):
                 return False
@@ -196,74 +221,60 @@ RESIM_TOLERANCE = 1e-6
 
 
 def judge(summaries: list[dict[str, Any]], resimulator=None) -> list[dict[str, Any]]:
-    """Add both verdicts to result summaries (:func:`pipps.experiments.results.read_summary`), in place:
+    """Add both verdicts to result summaries (:func:`pipps.experiments.results.read_summary`), in place,
+    each the task's (:func:`pipps.reporting.verdicts.verdict`):
 
-    * ``success``: the physical criterion (decides; :mod:`pipps.experiments.criteria`). Cart-pole
-      files written before the per-rollout flags were stored are re-simulated: the final trial's
-      own 30 evaluation rollouts are rerun with the stored policy and keys (``resimulated``; the
-      returns must match the stored ones, ``resim_error`` is the largest difference);
-    * ``return_success``: the thesis' return threshold (cart-pole; None for the unicycle);
+    * ``success``: the physical criterion (decides). Files written before the per-rollout flags
+      were stored (cart-pole) are re-simulated: the final trial's own evaluation rollouts are rerun
+      with the stored policy and keys (``resimulated``; the returns must match the stored ones,
+      ``resim_error`` is the largest difference);
+    * ``return_success``: the task's return threshold (the thesis' counting; None for a task
+      without one, as the unicycle);
     * ``final_balanced``: the final trial's fraction of rollouts meeting the physical criterion;
     * ``flip`` / ``return_flip``: the probability that a fresh evaluation flips each verdict;
     * ``final_se``: the standard error of the final evaluated return;
     * ``per_seed``: the seed's value under every reading of a success rate
       (:func:`pipps.reporting.readings.seed_values`).
     """
-    from pipps.experiments import criteria
+    from pipps.reporting import verdicts as v
 
     for s in summaries:
         cfg = s["config"]
         rets = np.asarray(s["final_eval_returns"], dtype=float)
-        s["final_se"] = criteria.standard_error(rets)
-        if cfg.task == "unicycle":
-            frac = float(s["upright_fraction"][-1])
-            need = cfg.upright_fraction
-            s["return_success"], s["return_flip"] = None, math.nan
-        else:
-            flags = s.get("final_eval_balanced")
-            if flags is None:
-                from pipps.experiments.results import read_result
-
-                resimulator = resimulator or criteria.Resimulator()
-                result = read_result(s["path"], verify=False)
-                ret, _, flags = resimulator.trial(result, len(result.trials) - 1)
-                s["resimulated"] = True
-                s["resim_error"] = float(np.max(np.abs(ret - rets)))
-                if not s["resim_error"] <= RESIM_TOLERANCE * max(1.0, float(np.max(np.abs(rets)))):
-                    from pipps.experiments.results import ResultError
-
-                    raise ResultError(f"{s['path']}: re-simulating its final evaluation gives returns that differ from "
-                                      f"the stored ones by {s['resim_error']:.2g}; its physical verdict cannot be "
-                                      "re-judged (another simulator or policy layout?)")
-            frac = float(np.mean(flags))
-            need = cfg.balanced_fraction
-            s["return_success"] = bool(float(np.mean(rets)) < cfg.success_threshold)
-            s["return_flip"] = criteria.flip_probability_return(rets, cfg.success_threshold)
-        s["final_balanced"] = frac
-        s["success"] = bool(frac >= need)
+        s["final_se"] = v.standard_error(rets)
+        flags = s["final_eval_upright"] if v.reads_upright(v.criterion(cfg)) else s.get("final_eval_balanced")
+        if flags is None:
+            flags = _resimulated_flags(s, rets, resimulator)
+        verdict = v.verdict(cfg, rets, flags)
+        s["final_balanced"] = verdict.fraction
+        s["success"] = verdict.success
+        s["return_success"] = verdict.return_success
+        s["return_flip"] = math.nan if verdict.threshold is None else v.flip_probability_return(rets, verdict.threshold)
         n = len(rets)
-        s["flip"] = criteria.flip_probability_fraction(int(round(frac * n)), n, need)
-        unicycle = cfg.task == "unicycle"
+        s["flip"] = v.flip_probability_fraction(int(round(verdict.fraction * n)), n, verdict.required)
+        threshold = verdict.threshold is not None
         s["per_seed"] = readings.seed_values(
-            cfg.seed, rets, s["final_eval_upright"] if unicycle else flags,
-            None if unicycle else s.get("final_trial_return"), None if unicycle else cfg.success_threshold, need,
-            _system_trial_physical(cfg, s))
+            cfg.seed, rets, flags, s.get("final_trial_return") if threshold else None, verdict.threshold,
+            verdict.required, v.system_trial_success(cfg, s.get("final_trial_states"), s.get("final_trial_valid")))
     return summaries
 
 
-def _system_trial_physical(cfg: ExperimentConfig, summary: dict[str, Any]) -> bool | None:
-    """Whether the final trial run on the system meets the physical criterion: the unicycle stayed
-    upright for the whole trial, the cart-pole ended balanced (:func:`pipps.experiments.criteria.balanced`
-    with the configuration's bounds). None where the summary lacks the trial."""
-    from pipps.experiments import criteria
+def _resimulated_flags(s: dict[str, Any], rets: np.ndarray, resimulator) -> np.ndarray:
+    """The criterion's flags of a file written before they were stored: its final trial's own evaluation
+    rollouts rerun (:class:`pipps.experiments.resimulate.Resimulator`), checked against the stored returns."""
+    from pipps.experiments.resimulate import Resimulator
+    from pipps.experiments.results import ResultError, read_result
 
-    if cfg.task == "unicycle":
-        valid = summary.get("final_trial_valid")
-        return None if valid is None else bool(np.all(valid))
-    states = summary.get("final_trial_states")
-    if states is None:
-        return None
-    return bool(criteria.balanced(np.asarray(states), cfg.balance_steps, cfg.balance_angle, cfg.balance_position))
+    resimulator = resimulator or Resimulator()
+    result = read_result(s["path"], verify=False)
+    ret, _, flags = resimulator.trial(result, len(result.trials) - 1)
+    s["resimulated"] = True
+    s["resim_error"] = float(np.max(np.abs(ret - rets)))
+    if not s["resim_error"] <= RESIM_TOLERANCE * max(1.0, float(np.max(np.abs(rets)))):
+        raise ResultError(f"{s['path']}: re-simulating its final evaluation gives returns that differ from "
+                          f"the stored ones by {s['resim_error']:.2g}; its physical verdict cannot be "
+                          "re-judged (another simulator or policy layout?)")
+    return flags
 
 
 def fisher_exact(a_successes: int, a_n: int, b_successes: int, b_n: int) -> float:
@@ -370,7 +381,7 @@ def judge_counted(summaries: list[dict[str, Any]], preset: str = "thesis", custo
     """:func:`judge` the summaries that count for ``preset`` (:func:`counts`), with one re-simulator
     (one compiled evaluation per configuration shape). Returns the judged summaries and, by path, the
     error of each legacy file whose evaluation does not re-simulate (left out)."""
-    from pipps.experiments.criteria import Resimulator
+    from pipps.experiments.resimulate import Resimulator
     from pipps.experiments.results import ResultError
 
     judged, errors, resimulator = [], {}, Resimulator()

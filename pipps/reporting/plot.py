@@ -6,15 +6,16 @@ interactively: a blueprint of four panels,
 * **learning curves** — evaluated return per trial for each (task, method, k, cost) group:
   the mean over seeds and the mean ± one standard deviation, with the success threshold (x: trial);
 * **predictions** — for one experiment per group (a tab each), a chart of the final trial's predicted
-  trajectories of the pole angle (particles, or the PILCO Gaussian's mean ± 2 sd) against the real
-  rollout, with time (s) and angle (rad) axes (:func:`pipps.experiments.figures.draw_prediction`);
+  trajectories of the task's panel component (the pole angle; particles, or the PILCO Gaussian's
+  mean ± 2 sd) against the real rollout, with time (s) and angle (rad) axes
+  (:func:`pipps.reporting.figures.draw_prediction`);
 * **k_LR per step** and **gradient variances per step** (log₁₀ σ²_RP, σ²_LR), averaged over the
   final trial's optimizer iterations (x: time step).
 
 The time-series panels share one sequence timeline, ``index``, because a rerun time-series view
 follows the viewer's single active timeline; their legends sit in the corner the data leave free.
 The figures for a paper (no viewer chrome, labelled axes, log scales) are in
-:mod:`pipps.experiments.figures` and :mod:`pipps.studies.figures`.
+:mod:`pipps.reporting.figures` and :mod:`pipps.studies.figures`.
 
 :func:`render_png` renders a recording with rerun's own viewer under ``xvfb-run``.
 """
@@ -38,10 +39,8 @@ _PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 
 
 
 def group_name(r: ExperimentResult) -> str:
-    from pipps.tasks.presets import DEFAULT_COST
-
     c = r.config
-    cost = c.cost or DEFAULT_COST[(c.task, c.preset)]
+    cost = c.cost or c.task_spec.default_cost(c.preset)
     if c.centre_std is None and c.policy == "rbf" and c.policy_init == "start":
         cost += "_startcentres"
     return f"{c.task}_{cost}_k{c.k:g}_{c.method}".replace("+", "plus").replace(".", "p")
@@ -69,7 +68,7 @@ def _blueprint(predictions, top: float):
 def record(results: list[ExperimentResult], out: str | Path) -> Path:
     """Write the recording of ``results`` to ``out`` (.rrd) and return its path."""
     from pipps import charts as ch
-    from pipps.experiments.figures import draw_prediction, prediction_chart
+    from pipps.reporting.figures import draw_prediction, prediction_chart
 
     groups: dict[str, list[ExperimentResult]] = defaultdict(list)
     for r in results:
@@ -98,6 +97,8 @@ def curve(rs: list[ExperimentResult]) -> tuple[np.ndarray, np.ndarray]:
 def _log_curves(rec, name: str, rs: list[ExperimentResult], color) -> None:
     import rerun as rr
 
+    from pipps.reporting.verdicts import criterion
+
     mean, std = curve(rs)
     n = len(mean)
     light = tuple(int(0.5 * c + 127) for c in color)
@@ -106,7 +107,7 @@ def _log_curves(rec, name: str, rs: list[ExperimentResult], color) -> None:
     for part in ("lo", "hi"):
         rec.log(f"curves/{name}/{part}", rr.SeriesLines(colors=[light], widths=[1.0], names=[f"{name} ± std"]),
                 static=True)
-    threshold = rs[0].config.success_threshold if rs[0].config.task != "unicycle" else None
+    threshold = criterion(rs[0].config).threshold  # None: the task is judged by its criterion alone
     for i in range(n):
         rec.set_time(TIMELINE, sequence=i)
         rec.log(f"curves/{name}/mean", rr.Scalars([mean[i]]))

@@ -1,0 +1,79 @@
+"""Re-running stored policies on the true system (docs/results-analyses.md "The physical criterion").
+
+A result file stores, per evaluation rollout, whether it met its task's success criterion
+(``eval_balanced``; :mod:`pipps.reporting.verdicts`). Files written before it was stored, and
+studies of the criterion's bounds, need those rollouts again: :class:`Resimulator` re-runs a
+trial's policy with the trial's own evaluation keys (the returns must equal the stored ones to
+rounding, the true system being deterministic given them) or with fresh ones, and judges each
+rollout with the task's rule, under the experiment's bounds or others.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def evaluation_keys(cfg, index: int):
+    """The keys of trial ``index``'s evaluation rollouts, as the learning loop draws them
+    (:func:`pipps.experiments.state.evaluation_keys`)."""
+    from pipps.experiments.state import evaluation_keys as keys
+
+    return keys(cfg, index)
+
+
+def policy_unraveler(cfg, problem):
+    """``flat -> policy``: the map from a stored flat policy vector (``TrialResult.policy``) back to the
+    policy ``cfg`` learns on ``problem`` (its structure is that of the initial policy)."""
+    import jax
+    from jax.flatten_util import ravel_pytree
+
+    from pipps.experiments.state import init_policy
+
+    return ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, problem))[1]
+
+
+class Resimulator:
+    """Re-runs stored policies on the true system: a trial's own evaluation rollouts (same keys, so
+    the returns must match the stored ones to rounding) or ``fresh`` independent ones. One compiled
+    program per configuration shape, reused across files."""
+
+    def __init__(self):
+        self._programs: dict = {}
+
+    def _program(self, cfg, balance=None):
+        import jax
+
+        from pipps.experiments.programs import evaluate_rollouts, success_rule
+        from pipps.experiments.state import make_experiment_task
+
+        if balance is not None:  # the cart-pole's criterion under other bounds
+            steps, angle, position = balance
+            cfg = cfg.replace(balance_steps=steps, balance_angle=angle, balance_position=position)
+        bounds = (cfg.balance_steps, cfg.balance_angle, cfg.balance_position)
+        key = (cfg.task, cfg.preset, cfg.k, cfg.cost, cfg.cost_scale, cfg.horizon, cfg.policy, cfg.num_basis, bounds)
+        if key not in self._programs:
+            task = make_experiment_task(cfg)
+            unravel = policy_unraveler(cfg, task.problem)
+            rule = success_rule(cfg)
+            run = lambda keys, flat: evaluate_rollouts(keys, task, unravel(flat), rule)  # noqa: E731
+            self._programs[key] = run if task.host_stepped else jax.jit(run)
+        return self._programs[key]
+
+    def trial(self, result, index: int, *, fresh: int | None = None, seed: int = 0, balance=None):
+        """``(returns, upright, criterion)`` (numpy) of trial ``index``'s policy: its own evaluation
+        rollouts, or ``fresh`` rollouts with keys from ``seed`` (independent of the experiment's);
+        ``criterion`` is the task's rule per rollout. ``balance = (steps, angle, position)`` judges
+        the cart-pole with other bounds than the configuration's."""
+        import jax
+        import jax.numpy as jnp
+
+        cfg = result.config
+        trial = result.trials[index]
+        if trial.kind != "learned":
+            raise ValueError(f"trial {index} is a random trial; its evaluation used random actions")
+        if fresh is None:
+            keys = evaluation_keys(cfg, index)
+        else:
+            keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), 1_000_003 + index), fresh)
+        out = self._program(cfg, balance)(keys, jnp.asarray(trial.policy))
+        return tuple(np.asarray(a) for a in jax.device_get(out))
