@@ -10,8 +10,6 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -567,50 +565,6 @@ def test_gp_data_whose_squares_overflow_are_refused():
 def test_the_ray_extra_installs_the_client():
     text = (REPO / "pyproject.toml").read_text()
     assert 'ray = ["ray[client]' in text
-
-
-@pytest.mark.slow
-def test_a_sweep_runs_through_a_two_node_ray_cluster_on_loopback(tmp_path):
-    """A head and a worker node on 127.0.0.1 (token authentication off, as docs/experiments.md says
-    for a private network), a sweep through the cluster address and through the Ray Client."""
-    pytest.importorskip("ray")
-    import ipaddress
-
-    from ray._private.services import get_node_ip_address
-
-    node_ip = get_node_ip_address()
-    if not ipaddress.ip_address(node_ip).is_loopback:
-        # Ray binds a node to the machine's interface address and ignores --node-ip-address 127.0.0.1
-        # (intended, ray-project/ray#26293); a test here may only send traffic to loopback addresses
-        pytest.skip(f"Ray would bind the cluster to {node_ip}, not a loopback address")
-    env = dict(os.environ, RAY_AUTH_MODE="disabled", JAX_PLATFORMS="cpu")
-    port, client = 6391, 23091  # outside the worker port range (10002-19999)
-    ray = [sys.executable, "-m", "ray.scripts.scripts"]
-    subprocess.run([*ray, "stop", "--force"], env=env, capture_output=True, timeout=120)
-    try:
-        head = subprocess.run([*ray, "start", "--head", "--node-ip-address", "127.0.0.1", "--port", str(port),
-                               "--ray-client-server-port", str(client), "--num-cpus", "1",
-                               "--include-dashboard", "false", "--disable-usage-stats"],
-                              env=env, capture_output=True, text=True, timeout=300)
-        assert head.returncode == 0, head.stderr[-2000:]
-        worker = subprocess.run([*ray, "start", "--address", f"127.0.0.1:{port}", "--node-ip-address", "127.0.0.1",
-                                 "--num-cpus", "1", "--disable-usage-stats"],
-                                env=env, capture_output=True, text=True, timeout=300)
-        assert worker.returncode == 0, worker.stderr[-2000:]
-        for address, out in ((f"127.0.0.1:{port}", tmp_path / "gcs"), (f"ray://127.0.0.1:{client}", tmp_path / "client")):
-            proc = subprocess.run(
-                [sys.executable, "-m", "pipps.cli", "sweep", "--table", "4.1", "--k", "1", "--methods", "tp",
-                 "--seeds", "2", "--preset", "quick", "--set", "num_learned=1", "--set", "policy_evals=4",
-                 "--set", "eval_rollouts=2", "--set", "num_particles=4", "--jobs", "2", "--backend", "ray",
-                 "--address", address, "--out", str(out)], env=env, capture_output=True, text=True, timeout=900)
-            assert proc.returncode == 0, proc.stderr[-3000:]
-            assert sorted(p.name for p in out.glob("*.h5")) == sorted(
-                f"{experiment_name(resolve_config('quick', 'cartpole_swingup', method='tp', k=1.0, cost='angle', seed=s, num_learned=1, policy_evals=4, eval_rollouts=2, num_particles=4))}.h5"
-                for s in range(2))
-            for p in out.glob("*.h5"):
-                assert verify_result(p)[0] == "complete"
-    finally:
-        subprocess.run([*ray, "stop", "--force"], env=env, capture_output=True, timeout=120)
 
 
 def test_review_mends(fake_loop, tmp_path, capsys):

@@ -39,6 +39,13 @@ itself writes the result file, atomically, after every trial. ``out_dir`` must t
 same path on every node (a shared filesystem). ``jobs`` caps the tasks in flight. Ray reserves a
 CPU per task but does not say which, so a task pins itself the same way, in a fresh worker
 process (``max_calls=1``) so the pinning precedes JAX.
+
+A node lost mid-sweep (its raylet or the machine dies) takes its tasks' worker processes with it.
+Ray runs such a task again on a node that is alive (up to :data:`RAY_RETRIES` times), and since
+the file on the shared folder keeps every finished trial and the dead process's lock died with it,
+the new task resumes the experiment from its last finished trial: the sweep finishes, with the
+same results as an uninterrupted one. A task that runs out of retries is reported as failed, its
+file keeping its finished trials for the next run of the same sweep to resume.
 """
 
 from __future__ import annotations
@@ -563,19 +570,37 @@ def _pinned(fn, *args):
     return fn(*args)
 
 
+#: how many times Ray runs an experiment's task again after its worker process or its node died
+#: (Ray's default for tasks, fixed here because the module doc and docs/reliability.md rely on it);
+#: an exception the experiment raises is not retried: its file records it
+RAY_RETRIES = 3
+
+
 def ray_task(ray):
-    """The remote function every sweep task runs: one CPU, a fresh worker process per task.
+    """The remote function every sweep task runs: one CPU, a fresh worker process per task, run
+    again elsewhere (:data:`RAY_RETRIES`) when its node dies.
 
     ``JAX_PLATFORMS`` travels with the task (``runtime_env``) when, and only when, it is set here.
     """
-    options = dict(num_cpus=1, max_calls=1)
+    options = dict(num_cpus=1, max_calls=1, max_retries=RAY_RETRIES, retry_exceptions=False)
     if "JAX_PLATFORMS" in os.environ:
         options["runtime_env"] = {"env_vars": {"JAX_PLATFORMS": os.environ["JAX_PLATFORMS"]}}
     return ray.remote(**options)(_pinned)
 
 
+def _run_one_on_node(cfg: ExperimentConfig, path: str) -> tuple[str, str, str, str]:
+    """:func:`_run_one` in a Ray task, with the name of the node that ran it."""
+    import platform
+
+    return (*_run_one(cfg, path), platform.node())
+
+
 def _run_on_ray(ray, todo, jobs: int, address: str | None, record) -> None:
-    """Submit ``todo`` as Ray tasks, at most ``jobs`` in flight, and ``record`` each as it ends."""
+    """Submit ``todo`` as Ray tasks, at most ``jobs`` in flight, and ``record`` each as it ends.
+
+    Each task carries its file's name as its Ray task name (``pipps NAME.h5``), for Ray's task
+    listings. A task that says it ran but whose file this process cannot see wrote it on a disk of
+    its node only: a failure, named as such."""
     started = not ray.is_initialized()
     if started:
         ray.init(address=address)
@@ -586,14 +611,23 @@ def _run_on_ray(ray, todo, jobs: int, address: str | None, record) -> None:
         while queue or in_flight:
             while queue and len(in_flight) < jobs:
                 cfg, name, absolute = queue.pop(0)
-                in_flight[task.remote(_run_one, cfg, absolute)] = name
+                ref = task.options(name=f"pipps {Path(name).name}").remote(_run_one_on_node, cfg, absolute)
+                in_flight[ref] = (name, absolute)
             (ref,), _ = ray.wait(list(in_flight), num_returns=1)
-            name = in_flight.pop(ref)
+            name, absolute = in_flight.pop(ref)
             try:
-                _, outcome, message = ray.get(ref)
-                record(name, outcome, message)
-            except ray.exceptions.RayError as err:  # the worker died; its file says running or failed
-                record(name, "failed", f"{type(err).__name__}: {err}")
+                _, outcome, message, node = ray.get(ref)
+            except ray.exceptions.RayError as err:  # e.g. out of retries; the file keeps its finished trials
+                first = str(err).strip().splitlines()[0] if str(err).strip() else "no message"
+                record(name, "failed", f"{type(err).__name__}: {first} (the file keeps every finished trial; "
+                                       "running the same sweep again resumes it)")
+                continue
+            if outcome == "ran" and not os.path.exists(absolute):
+                outcome, message = "failed", (
+                    f"OutputError: node {node} wrote {absolute}, but this machine does not see it: --out must be "
+                    "a folder that every node and the launching machine share at the same path (the file is on "
+                    f"{node}; copy it here to keep it)")
+            record(name, outcome, message)
     finally:
         if started:
             ray.shutdown()  # stops a local instance this call started; only disconnects from a cluster
