@@ -46,6 +46,13 @@ def _commands() -> list[list[str]]:
     return lines
 
 
+def test_the_module_is_the_committed_one():
+    """experiments/pendulum_task.py is the page's module verbatim: the committed tutorial results
+    (results/tutorial/) re-tabulate with it (``--task experiments.pendulum_task:pendulum``)."""
+    committed = PAGE.parents[1] / "experiments" / "pendulum_task.py"
+    assert committed.read_text() == _block("tutorial-module")
+
+
 def test_the_module_is_short():
     """The page promises a system in one short module (code lines, docstrings and comments included)."""
     assert len(_block("tutorial-module").strip().splitlines()) <= 40
