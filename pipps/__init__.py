@@ -2,7 +2,7 @@
 
 Importing :mod:`pipps` or any of its modules has no side effect on the process: it does not switch
 on JAX's 64-bit mode and does not register gymnasium environments. The library is specified in
-float64 (tasks.md §0); a program enables it once with :func:`enable_float64`, and the entry points
+float64; a program enables it once with :func:`enable_float64`, and the entry points
 that need it raise :class:`Float64Required` otherwise (:mod:`pipps.precision`). The gymnasium ids
 are registered by :func:`pipps.tasks.register_envs` (or ``gymnasium.make("pipps.tasks.envs:ID")``).
 """

@@ -1,14 +1,14 @@
-"""Saturating costs on the model state and their Gaussian expectations (tasks.md §2, §3.6, §5.6).
+"""Saturating costs on the model state and their Gaussian expectations (docs/costs.md).
 
 Every cost here is ``c(x) = 1 − exp(−½ (φ(x) − z)ᵀ W (φ(x) − z))`` (PILCO's convention)
 with the feature map ``φ`` = an optional linear extension ``y = L x`` followed by the trig
 augmentation ``[y; sin y_a, cos y_a (a in angle_idx)]``. The thesis writes the same
-function as ``1 − exp(−(φ − z)ᵀ Q (φ − z))``, so ``W = 2Q`` (tasks.md §8).
+function as ``1 − exp(−(φ − z)ᵀ Q (φ − z))``, so ``W = 2Q`` (thesis eq. 4.1).
 
 A :class:`SaturatingCost` is static configuration (numpy constants closed over by jitted
 code), like :class:`pipps.tasks.base.Problem`; it satisfies the ``Cost`` protocol there.
 ``cost(x)`` is exact per state (vmappable over particles); ``cost.expected(mean, cov)``
-is PILCO's moment-matched ``(E[c], Var[c])``: exact through the linear map and §5.6, an
+is PILCO's moment-matched ``(E[c], Var[c])``: exact through the linear map and the closed-form expectation, an
 approximation only where the non-Gaussian trig features are replaced by a Gaussian.
 """
 
@@ -22,9 +22,9 @@ import numpy as np
 
 from pipps.gaussian import expected_saturating_cost, linear_map, trig_augment
 
-CARTPOLE_POLE_LENGTH = 0.5  # l (m), tasks.md §2
-UNICYCLE_COST_WHEEL_RADIUS = 0.22  # r_w in the cost (the dynamics use 0.225), tasks.md §3.6
-UNICYCLE_COST_HEIGHT = 0.81  # r = r_f + r_t, tasks.md §3.6
+CARTPOLE_POLE_LENGTH = 0.5  # l (m), PILCO's cart-pole (docs/task-cartpole.md)
+UNICYCLE_COST_WHEEL_RADIUS = 0.22  # r_w in the cost (the dynamics use 0.225), PILCO's loss_unicycle.m
+UNICYCLE_COST_HEIGHT = 0.81  # r = r_f + r_t, PILCO's loss_unicycle.m
 
 
 def _frozen(a, ndim: int, name: str) -> np.ndarray:
@@ -100,7 +100,7 @@ class SaturatingCost:
         return 1.0 - jnp.exp(-0.5 * jnp.einsum("...i,ij,...j->...", d, self.W, d))
 
     def feature_moments(self, mean: jax.Array, cov: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Moment-matched Gaussian over φ(x) for x ~ N(mean, cov): linear map, then §5.1."""
+        """Moment-matched Gaussian over φ(x) for x ~ N(mean, cov): linear map, then the trig augmentation."""
         if self.linear is not None:
             mean, cov, _ = linear_map(mean, cov, self.linear)
         if self.angle_idx:
@@ -108,7 +108,7 @@ class SaturatingCost:
         return mean, cov
 
     def expected(self, mean: jax.Array, cov: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(E[c], Var[c]) for x ~ N(mean, cov): :meth:`feature_moments`, then §5.6."""
+        """(E[c], Var[c]) for x ~ N(mean, cov): :meth:`feature_moments`, then the closed form."""
         m, S = self.feature_moments(mean, cov)
         return expected_saturating_cost(m, S, self.W, self.target)
 
@@ -118,7 +118,7 @@ def cartpole_angle_cost(scale: float = 1.0) -> SaturatingCost:
 
     Thesis form ``Q = scale·diag(1, 0, 0, 1)`` (``diag(1, 1, 0, 0)`` on its ``(s, β)``),
     ours ``W = 2Q``, target ``[0, 0, 0, π]``: the raw angle, so only the upright position
-    reached by swinging in the positive direction (θ = +π) costs 0 (experiments.md).
+    reached by swinging in the positive direction (θ = +π) costs 0 (docs/costs.md, "Interpretations").
     ``scale = 0.01`` is the thesis' "Q multiplied by 0.01" experiment.
     """
     Q = scale * np.diag([1.0, 0.0, 0.0, 1.0])
@@ -128,7 +128,7 @@ def cartpole_angle_cost(scale: float = 1.0) -> SaturatingCost:
 def cartpole_tip_cost(
     l: float = CARTPOLE_POLE_LENGTH, sigma_c: float = 0.25  # noqa: E741 (the thesis' name)
 ) -> SaturatingCost:
-    """PILCO's tip-distance cost ``1 − exp(−d²/(2σ_c²))`` (tasks.md §2).
+    """PILCO's tip-distance cost ``1 − exp(−d²/(2σ_c²))`` (PILCO's ``loss_cp.m``).
 
     ``d² = (x_c + l sin θ)² + l²(1 + cos θ)²`` is the squared distance of the pole tip from
     the upright tip; on ``x̃ = [x_c, v, ω, θ, sin θ, cos θ]`` it is ``(x̃ − z)ᵀQ(x̃ − z)``
@@ -146,7 +146,7 @@ def cartpole_tip_cost(
 def unicycle_cost(
     r_w: float = UNICYCLE_COST_WHEEL_RADIUS, r: float = UNICYCLE_COST_HEIGHT
 ) -> SaturatingCost:
-    """PILCO's unicycle cost (tasks.md §3.6) on the 10-dim model state.
+    """PILCO's unicycle cost (``loss_unicycle.m``) on the 10-dim model state.
 
     Model state ``[θ̇, φ̇, ψ̇_w, ψ̇_f, ψ̇_t, x_c, y_c, θ, φ, ψ_f]``; ``y = [x; α, β]`` with
     ``α = θ − ψ_f``, ``β = θ + ψ_f`` (indices 10, 11); trig of ``(θ, α, β, ψ_f)`` appends

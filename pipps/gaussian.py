@@ -1,9 +1,9 @@
-"""Closed-form Gaussian moment routines (tasks.md §0, §5.1, §5.6).
+"""Closed-form Gaussian moment routines: trig features, linear maps, the saturating cost (docs/pilco.md).
 
 Every routine takes one Gaussian ``v ~ N(mean, cov)`` (no batch axes; ``jax.vmap`` for
 batches) and is a plain JAX function, differentiable in ``mean`` and ``cov``.
 
-Gaussian-map convention (tasks.md §0): a map ``y = f(v)`` returns
+Gaussian-map convention (PILCO's; docs/pilco.md, "One step, block by block"): a map ``y = f(v)`` returns
 ``GaussianMap(M, S, C)`` with ``M = E[y]``, ``S = Cov[y]`` and ``C = Σ⁻¹ Cov[v, y]``.
 ``C`` is never obtained by inverting ``Σ``: for the maps here it is the closed form
 ``E[∂f/∂v]ᵀ`` (Stein's lemma), so ``Cov[v, y] = Σ C`` and, for any ``w`` jointly
@@ -18,11 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-VARIANCE_FLOOR = 1e-12  # §5.6: Var[c] below this is reported as 0
+VARIANCE_FLOOR = 1e-12  # Var[c] below this is reported as 0 (docs/costs.md)
 
 
 class GaussianMap(NamedTuple):
-    """Moments of ``y = f(v)`` for ``v ~ N(μ, Σ)`` (tasks.md §0)."""
+    """Moments of ``y = f(v)`` for ``v ~ N(μ, Σ)``: ``(M, S, C)`` of the convention above."""
 
     M: jax.Array  # (F,) E[y]
     S: jax.Array  # (F, F) Cov[y]
@@ -53,7 +53,7 @@ def _q_expm1(lq: jax.Array, q: jax.Array, v: jax.Array) -> jax.Array:
 
 
 def trig_moments(mean: jax.Array, cov: jax.Array, angle_idx: Sequence[int]) -> GaussianMap:
-    """Moments of ``[sin v_a, cos v_a]`` (a in angle_idx, pairs in (sin, cos) order), §5.1.
+    """Moments of ``[sin v_a, cos v_a]`` (a in angle_idx, pairs in (sin, cos) order), PILCO's gTrig.m.
 
     All pairs (i, j) of listed angles are filled, including the cross terms between
     different angles. ``C[:, 2k] = e_k E[cos v_a]`` and ``C[:, 2k+1] = -e_k E[sin v_a]``
@@ -102,7 +102,7 @@ def append_map(mean: jax.Array, cov: jax.Array, g: GaussianMap) -> tuple[jax.Arr
 def trig_augment(
     mean: jax.Array, cov: jax.Array, angle_idx: Sequence[int]
 ) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Moments of ``x̃ = [x; sin x_a, cos x_a (a in angle_idx)]`` (tasks.md §0, §5.1).
+    """Moments of ``x̃ = [x; sin x_a, cos x_a (a in angle_idx)]``, each pair in (sin, cos) order.
 
     Returns ``(mean_aug (D+2A,), cov_aug (D+2A, D+2A), C (D, 2A))`` where ``C`` is
     ``Σ⁻¹ Cov[x, trig]`` for the appended features only.
@@ -115,7 +115,7 @@ def trig_augment(
 def expected_saturating_cost(
     mean: jax.Array, cov: jax.Array, W: jax.Array, target: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
-    """(E[c], Var[c]) of ``c(y) = 1 − exp(−½ (y−z)ᵀ W (y−z))`` for ``y ~ N(m, S)`` (§5.6).
+    """(E[c], Var[c]) of ``c(y) = 1 − exp(−½ (y−z)ᵀ W (y−z))`` for ``y ~ N(m, S)`` (PILCO's lossSat.m).
 
     ``E[c] = 1 − |I+SW|^{-1/2} exp(−½ dᵀ W (I+SW)⁻¹ d)`` and
     ``Var[c] = |I+2SW|^{-1/2} exp(−dᵀ W (I+2SW)⁻¹ d) − (1−E[c])²`` with ``d = m − z``;

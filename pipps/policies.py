@@ -5,7 +5,7 @@ parameters (stored unconstrained), with a pure ``__call__(v) -> u`` on one polic
 input vector ``v = x̃[P]`` (vmap it over particles). The control limit ``u_max``
 is static metadata, never a leaf, so it gets no gradient.
 
-For the moment-matching baseline (tasks.md §5.2) both RBF networks describe
+For the moment-matching baseline (docs/pilco.md) both RBF networks describe
 themselves in one convention through :meth:`as_rbf`: an output is
 ``Σ_i β_i exp(-½ (v - c_i)ᵀ diag(ℓ²)⁻¹ (v - c_i))`` (signal variance 1).
 """
@@ -20,13 +20,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.tree_util import register_dataclass
 
-# PILCO's fixed RBF-controller hyperparameters (tasks.md §2): never trained.
+# PILCO's fixed RBF-controller hyperparameters (its ``congp.m``): never trained.
 PILCO_RBF_SIGNAL_STD = 1.0
 PILCO_RBF_NOISE_STD = 0.01
 
 
 def saturate(w: jax.Array) -> jax.Array:
-    """sat(w) = (9 sin w + sin 3w)/8 ∈ [-1, 1] (tasks.md §2; thesis §4.5.3)."""
+    """sat(w) = (9 sin w + sin 3w)/8 ∈ [-1, 1] (PILCO's ``gSat.m``; thesis §4.5.3)."""
     return (9.0 * jnp.sin(w) + jnp.sin(3.0 * w)) / 8.0
 
 
@@ -40,7 +40,7 @@ def _static(default=dataclasses.MISSING):
 
 
 class RBFForm(NamedTuple):
-    """An RBF network in PILCO's kernel convention (used by moment matching, tasks.md §5.2).
+    """An RBF network in PILCO's kernel convention (used by moment matching, docs/pilco.md).
 
     Output ``a`` is ``Σ_i beta[i, a] · exp(-½ (v - centres[i])ᵀ diag(lengthscale_sq[a])⁻¹ (v - centres[i]))``.
     """
@@ -61,7 +61,7 @@ def _sq_dist_scaled(v: jax.Array, centres: jax.Array, inv_scale: jax.Array) -> j
 @register_dataclass
 @dataclasses.dataclass(frozen=True)
 class RBFPolicy:
-    """The thesis' RBF policy (thesis §4.1; experiments.md "Resolved choices").
+    """The thesis' RBF policy (thesis §4.1; docs/policies.md).
 
     ``π̃(v) = Σ_i w_i exp(-(v - m_i)ᵀ Λ⁻¹ (v - m_i))`` — no ½ in the exponent, weights used
     directly, one diagonal Λ shared by all outputs and stored as ``log_lambda = log diag Λ`` —
@@ -92,7 +92,7 @@ class RBFPolicy:
 @register_dataclass
 @dataclasses.dataclass(frozen=True)
 class PilcoRBFPolicy:
-    """PILCO's RBF controller (tasks.md §2): the mean of a "deterministic GP", then saturation.
+    """PILCO's RBF controller (``congp.m``): the mean of a "deterministic GP", then saturation.
 
     ``π̃_a(v) = Σ_i β_{a,i} k(v, c_i)`` with ``k = σ_f² exp(-½ (v-c)ᵀ Λ_a⁻¹ (v-c))``,
     ``β_a = (K_a + σ_π² I)⁻¹ y_a``; σ_f = 1 and σ_π = 0.01 are fixed constants, not parameters.
@@ -132,7 +132,7 @@ class PilcoRBFPolicy:
 @register_dataclass
 @dataclasses.dataclass(frozen=True)
 class LinearPolicy:
-    """Linear saturated policy (tasks.md §3.7): ``u = u_max ⊙ sat(W v + b)``.
+    """Linear saturated policy (PILCO's ``conlin.m``): ``u = u_max ⊙ sat(W v + b)``.
 
     ``saturated=False`` gives the plain linear map ``u = W v + b`` (``u_max`` unused): the
     linear-Gaussian test systems need it, because only then are the state distributions
@@ -217,7 +217,7 @@ def init_rbf_policy_uniform(
     log_lambda=0.0,
     weight_scale: float = 0.1,
 ) -> RBFPolicy:
-    """Centres uniform on the box [low, high] (the `quick` preset's departure, experiments.md)."""
+    """Centres uniform on the box [low, high] (the `quick` preset's departure, docs/experiments.md "Presets")."""
     low = np.asarray(low, dtype=float)
     high = np.asarray(high, dtype=float)
     if low.shape != high.shape or low.ndim != 1 or np.any(high <= low):
@@ -240,7 +240,7 @@ def init_pilco_rbf_policy(
     lengthscale=None,
     target_scale: float = 0.1,
 ) -> PilcoRBFPolicy:
-    """PILCO initialisation (tasks.md §2): centres ~ N(mean, cov), y ~ 0.1·N(0,1), ℓ given.
+    """PILCO initialisation (``settings_cp.m``): centres ~ N(mean, cov), y ~ 0.1·N(0,1), ℓ given.
 
     ``lengthscale`` defaults to PILCO's cart-pole [1, 1, 1, 0.7, 0.7] when D = 5, else ones.
     """
@@ -259,7 +259,7 @@ def init_pilco_rbf_policy(
 def init_linear_policy(
     key: jax.Array, input_dim: int, u_max, *, scale: float = 0.01, saturated: bool = True
 ) -> LinearPolicy:
-    """Unicycle initialisation (tasks.md §3.7): W ~ 0.01·N(0,1), b = 0."""
+    """Unicycle initialisation (PILCO's ``settings_unicycle.m``): W ~ 0.01·N(0,1), b = 0."""
     u = _u_max_tuple(u_max)
     W = scale * jax.random.normal(key, (len(u), input_dim))
     return LinearPolicy(W, jnp.zeros(len(u)), u, saturated)

@@ -1,7 +1,7 @@
 """Float64 is the caller's choice: importing pipps changes no global setting.
 
-The task physics, GP training and every numerical check of this project are specified in float64
-(tasks.md §0), so a program that uses pipps (the ``pipps`` command, the test session, a script)
+The task physics, GP training and every numerical check of this project are specified in float64,
+so a program that uses pipps (the ``pipps`` command, the test session, a script)
 switches on JAX's 64-bit mode once, before it builds any array::
 
     import pipps

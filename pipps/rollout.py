@@ -1,4 +1,4 @@
-"""Rollouts on the true (simulated) system, as pure JAX (tasks.md §1, "Rollout on the true system").
+"""Rollouts on the true (simulated) system, as pure JAX, as PILCO's ``base/rollout.m`` does them.
 
 One ``lax.scan`` over the horizon; vmap :func:`rollout` over keys for the evaluation
 rollouts. The gymnasium environments in :mod:`pipps.tasks.envs` expose the same
@@ -44,7 +44,7 @@ class Trajectory(NamedTuple):
 
 
 def sample_initial_state(key: jax.Array, simulator: Simulator) -> jax.Array:
-    """s_0 ~ N(μ0, Σ0) in simulator coordinates (tasks.md §1.1)."""
+    """s_0 ~ N(μ0, Σ0) in simulator coordinates."""
     return jax.random.multivariate_normal(
         key, jnp.asarray(simulator.init_mean), jnp.asarray(simulator.init_cov), method="svd"
     )
@@ -57,7 +57,7 @@ def rollout(
     *,
     horizon: int | None = None,
 ) -> Trajectory:
-    """Run one episode on the true system (tasks.md §1).
+    """Run one episode on the true system: observe with noise, act, integrate one interval, repeat.
 
     ``policy`` maps the policy input ``x̃^o[P]`` (built from the *noisy* observation) to the
     control; ``None`` draws i.i.d. random actions ``U[-u_rand, u_rand]`` (no squashing).
@@ -108,7 +108,7 @@ def rollout(
 
 
 def training_pairs(task: Task, traj: Trajectory) -> tuple[np.ndarray, np.ndarray]:
-    """GP training data of one trajectory (tasks.md §1.3): inputs ``[x̃^o_t[I]; u_t]``, targets ``x^o_{t+1} − x^o_t``.
+    """GP training data of one trajectory: inputs ``[x̃^o_t[I]; u_t]``, targets ``x^o_{t+1} − x^o_t``.
 
     Only valid transitions are returned (host-side arrays; the data set grows on the host). The
     simulator's ``periodic`` components (angles ``sim_to_model`` returns wrapped) have their

@@ -11,7 +11,7 @@ benchmarks and the studies.
 A replicate splits its key into (state key, earlier-batch key, estimate key): the "previous"
 baseline comes from the extra rollout of :func:`~pipps.propagation.init_estimator_state`, and an
 estimator whose initial state is a cold start (TP's "previous" ``k_LR``) takes one earlier estimate
-first, as an optimizer's second iteration would have them (estimators.md §3, §4).
+first, as an optimizer's second iteration would have them (docs/estimators.md, "Choices the thesis left open").
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Episodic learning experiments: configuration, the learning loop, HDF5 results and sweeps
-(experiments.md; docs/experiments.md). Tables, figures and verdicts are :mod:`pipps.reporting`."""
+(thesis §4.5; docs/experiments.md). Tables, figures and verdicts are :mod:`pipps.reporting`."""
 
 from pipps.experiments.config import PRESET_NAMES, ConfigError, ExperimentConfig, resolve_config
 from pipps.experiments.loop import ExperimentResult, TrialResult, run_experiment

@@ -1,4 +1,4 @@
-"""Many seeds at once: the R seeds of one table cell as one vectorized computation (issue 7).
+"""Many seeds at once: the R seeds of one table cell as one vectorized computation.
 
 ``run_batched(cfgs)`` runs experiments whose configurations differ only in the seed through the
 one learning loop (:func:`pipps.experiments.loop.run_seeds`) on a batched seed axis,

@@ -1,7 +1,7 @@
 """Experiment configuration: one flat, validated, serialisable record per experiment.
 
 An :class:`ExperimentConfig` holds every setting of one episodic learning experiment
-(experiments.md "Episodic learning protocol" and "Resolved choices"). It is built by
+(thesis §4.5.3; docs/experiments.md, "The loop" and "Presets"). It is built by
 :func:`resolve_config` from a preset and overrides, validated at once (a bad value raises
 :class:`ConfigError` naming the setting), and stored verbatim in the HDF5 result as
 attributes, so a result file says exactly what produced it.
@@ -13,10 +13,10 @@ Presets:
   (α = 5·10⁻⁴, γ = 0.9), 50-centre RBF policy with centres at the start mean plus N(0, I) (the
   author's demo; the start distribution itself does not learn, docs/results.md), the thesis'
   own estimator choices (eq. 4.3 baseline, same-batch k_LR), 30 evaluation rollouts.
-* ``pilco`` — the PILCO MATLAB task defaults (tasks.md §2–3) with the library's estimator
+* ``pilco`` — the PILCO MATLAB task defaults (docs/task-cartpole.md, docs/task-unicycle.md) with the library's estimator
   choices (unbiased baselines; TP's leave-one-out k_LR).
 * ``quick`` — the thesis protocol shrunk for a few-minute CPU run: fewer trials, particles
-  and policy evaluations, and the documented departure of experiments.md: RBF centres spread
+  and policy evaluations, and a documented departure (docs/experiments.md, "Presets"): RBF centres spread
   uniformly over the state box and wider initial length-scales.
 
 **Two presets.** The word names two things, kept apart here and only here:
@@ -119,7 +119,7 @@ class ExperimentConfig:
     # FITC trials alike; docs/performance.md
     variance_tol: float = 0.0
     # PILCO
-    pilco_linesearches: int | None = None  # None: PILCO's budget for the task (tasks.md §2, §3.7)
+    pilco_linesearches: int | None = None  # None: PILCO's budget for the task (its settings_*.m)
     # True: the policy sees the predicted state plus the GP noise variances halved, as PILCO's release V0.9
     # did; False: the latent state, as its later code (a0b48b7) and every result before the setting existed
     pilco_policy_noise: bool = False
@@ -284,8 +284,8 @@ def preset_values(preset: str, task) -> dict[str, Any]:
     a record (:func:`pipps.tasks.get_task`).
 
     The thesis preset spreads the RBF centres as the start mean plus N(0, I) (``centre_std = 1``):
-    the one departure from experiments.md's "centres initialized from the start distribution"
-    (N(0, 0.1²I)), which barely learns; the author's demo spreads them so. Evidence in
+    the one departure from drawing the centres from the start distribution
+    (N(0, 0.1²I), as PILCO does), which barely learns; the author's demo spreads them so. Evidence in
     docs/results.md ("Why the thesis preset spreads the centres"); ``--set centre_std=none``
     restores the start distribution."""
     if preset not in PRESET_NAMES:

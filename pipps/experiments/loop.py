@@ -1,4 +1,4 @@
-"""The episodic learning loop (thesis Algorithm 1, §4.5.3; experiments.md "Episodic learning protocol").
+"""The episodic learning loop (thesis Algorithm 1, §4.5.3; docs/experiments.md, "The loop").
 
 An experiment runs ``num_random`` random trials, then ``num_learned`` times: train one GP per
 state dimension on all data → optimise the policy on the model with the chosen method → run one

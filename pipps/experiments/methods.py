@@ -11,18 +11,18 @@ registry, :data:`METHODS`, instead of decoding method names.
 =========  ==========  ============================================================================
 method     label       prediction, gradient, optimiser
 =========  ==========  ============================================================================
-pilco      PILCO       moment matching (tasks.md §5), its exact gradient, quasi-Newton with PILCO's budget
-rp         RP          particles, RP estimator (estimators.md §2), normalized momentum step (§8)
+pilco      PILCO       moment matching (thesis Alg. 2), its exact gradient, quasi-Newton with PILCO's budget
+rp         RP          particles, RP estimator, normalized momentum step (thesis §4.5.1)
 rp_fs      RP_FS       fixed seed (PEGASUS), RP by autodiff, quasi-Newton with ``policy_evals`` evaluations
-gr         GR          Gaussian resampling each step (§7), RP through it, normalized momentum
+gr         GR          Gaussian resampling each step (thesis §4.3.1), RP through it, normalized momentum
 gr_fs      GR_FS       GR on a fixed seed, quasi-Newton
-lr         LR          BIW-LR (§3)
-tp         TP          total propagation of RP and BIW-LR (§4)
+lr         LR          BIW-LR (thesis eq. 4.2–4.3)
+tp         TP          total propagation of RP and BIW-LR (thesis Alg. 5)
 tp-sf      TP−σ_f      TP without the GP's epistemic variance (−σ_f)
 tp+sn      TP+σ_n      TP with σ_n² × ``noise_boost_tp`` (thesis: 100)
-gtp, glr   GTP, GLR    Gaussian-shaped TP and LR (§5)
+gtp, glr   GTP, GLR    Gaussian-shaped TP and LR (thesis §3.3.2, Alg. 6)
 gtp+sn     GTP+σ_n     GTP with σ_n² × ``noise_boost_gtp`` (thesis: 25)
-del        DEL         density-estimation LR (§6)
+del        DEL         density-estimation LR (thesis §3.3.1)
 =========  ==========  ============================================================================
 
 With ``estimator_choices="thesis"`` the LR parts use the thesis' eq. 4.3 baseline and TP its
@@ -56,13 +56,13 @@ class Optimizer:
     settings: tuple[str, ...]
 
 
-#: the estimator's stochastic gradient, normalized momentum step (estimators.md §8)
+#: the estimator's stochastic gradient, normalized momentum step (thesis §4.5.1)
 MOMENTUM = Optimizer("momentum", "normalized momentum on the estimator's gradient, policy_evals steps",
                      ("policy_evals", "learning_rate", "momentum", "progress_chunk"))
 #: quasi-Newton on one noise draw's particle objective, fixed for the whole search (PEGASUS)
 FIXED_SEED = Optimizer("fixed_seed", "quasi-Newton on a fixed seed's particle objective, policy_evals evaluations",
                        ("policy_evals",))
-#: PILCO's quasi-Newton on the moment-matching objective, with its line-search budget (tasks.md §2, §3.7);
+#: PILCO's quasi-Newton on the moment-matching objective, with its line-search budget (its settings_*.m);
 #: ``pilco_policy_noise`` adds PILCO V0.9's policy-input noise term to that objective (docs/pilco.md)
 PILCO_SEARCH = Optimizer("pilco", "quasi-Newton on the moment-matching objective, PILCO's line-search budget",
                          ("pilco_linesearches", "pilco_policy_noise"))
@@ -74,7 +74,7 @@ class Particles:
 
     ``model_variance=False`` is the ``−σ_f`` variant (no GP epistemic variance); ``noise_boost``
     names the :class:`~pipps.experiments.config.ExperimentConfig` setting that multiplies σ_n²
-    (the ``+σ_n`` variants); ``resampling="gaussian"`` is GR (estimators.md §7).
+    (the ``+σ_n`` variants); ``resampling="gaussian"`` is GR (thesis §4.3.1).
     """
 
     model_variance: bool = True
@@ -158,7 +158,7 @@ def _particle_method(name, label, colour, estimator, description, optimizer=MOME
 #: Every method, in the thesis' column order (the CLI's ``--method`` choices).
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("pilco", "PILCO", (214, 39, 40), PILCO_SEARCH,
-           description="moment matching (tasks.md §5), quasi-Newton on the exact gradient, PILCO's budget"),
+           description="moment matching (thesis Alg. 2), quasi-Newton on the exact gradient, PILCO's budget"),
     _particle_method("rp", "RP", (255, 127, 14), "rp", "RP estimator, normalized momentum"),
     _particle_method("rp_fs", "RP_FS", (188, 189, 34), "rp", "RP on a fixed seed (PEGASUS), quasi-Newton",
                      optimizer=FIXED_SEED),

@@ -53,7 +53,7 @@ def policy_start_moments(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
 
 
 def init_policy(key: jax.Array, cfg: ExperimentConfig, problem: Problem):
-    """The initial policy (experiments.md "Resolved choices"; the ``quick`` departure)."""
+    """The initial policy (docs/experiments.md, "Presets"; the ``quick`` departure)."""
     d = problem.policy_input_dim
     lam = np.asarray(cfg.log_lambda_init, dtype=float)
     if lam.size not in (1, d):

@@ -1,4 +1,4 @@
-"""GP dynamics models (tasks.md §4): one independent SE-ARD GP per output, full or FITC.
+"""GP dynamics models (docs/gp.md): one independent SE-ARD GP per output, full or FITC.
 
 Typical use, once per episode::
 

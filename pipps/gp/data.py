@@ -1,4 +1,4 @@
-"""Training sets: host-side validation, padding to a capacity, masked statistics (tasks.md §4).
+"""Training sets: host-side validation, padding to a capacity, masked statistics (docs/gp.md).
 
 Growing data sets are padded with ``mask=False`` rows to a capacity (a multiple of a chunk
 size), so jitted training and prediction compile once per capacity, not once per episode.

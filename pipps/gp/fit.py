@@ -1,4 +1,4 @@
-"""Host-level GP training entry point (tasks.md §1 step 1, §4).
+"""Host-level GP training entry point: the first step of each learned trial (docs/gp.md).
 
 :func:`fit` validates the data on the host, runs one jitted program (hyperparameters, then
 FITC inducing inputs when N > threshold, then the posterior), and reports every numerical
@@ -127,7 +127,7 @@ def fit(
     prev: Optional[FitState] = None,
     config: GPConfig = GPConfig(),
 ) -> tuple[GPPosterior, FitState, FitInfo]:
-    """Train the GP dynamics model on all data and build its posterior (tasks.md §4).
+    """Train the GP dynamics model on all data and build its posterior (docs/gp.md).
 
     Args:
       key: PRNG key for the first FITC inducing-input subset (only needed when FITC is used

@@ -1,4 +1,4 @@
-"""Sparse GP with FITC (Snelson & Ghahramani 2006) as PILCO uses it (tasks.md §4).
+"""Sparse GP with FITC (Snelson & Ghahramani 2006) as PILCO uses it (docs/gp.md, "Sparse FITC").
 
 With inducing inputs X_u (M, Dz) shared by all outputs, K_mm carrying ``fitc_jitter`` (PILCO's
 ridge 1e-6), V = L⁻¹K_mn (L = chol K_mm), Q_nn = VᵀV and Λ_a = diag(K_nn − Q_nn) + σ_n,a² I:
@@ -6,7 +6,7 @@ ridge 1e-6), V = L⁻¹K_mn (L = chol K_mm), Q_nn = VᵀV and Λ_a = diag(K_nn �
     −log p_FITC(y_a) = ½ log|Q_nn + Λ_a| + ½ y_aᵀ(Q_nn + Λ_a)⁻¹y_a + (n/2) log 2π,
 
 evaluated through A = I + V Λ⁻¹ Vᵀ (M×M) with the determinant lemma and Woodbury. The
-posterior has the fields of the full GP (§5.4 with training inputs replaced by X_u):
+posterior has the fields of the full GP (the moment-matching formulas with training inputs replaced by X_u):
 β_a = B_a⁻¹ K_mn Λ_a⁻¹ y_a and inv_a = K_mm⁻¹ − B_a⁻¹, B_a = K_mm + K_mn Λ_a⁻¹ K_nm = L A Lᵀ.
 Padded rows (mask False) get zero K_mn columns, zero targets and Λ = 1: no effect.
 """
@@ -52,7 +52,7 @@ def _fitc_factors(psi, xu, x, y, mask, chol_mm, noise_floor):
 
 
 def fitc_neg_log_likelihood(psi, xu, x, y, mask, ridge, noise_floor) -> jax.Array:
-    """−log p_FITC(y_a) of one output with K_mm + ridge·I (tasks.md §4); NaN if a Cholesky fails."""
+    """−log p_FITC(y_a) of one output with K_mm + ridge·I; NaN if a Cholesky fails."""
     kmm = inducing_gram(psi, xu) + ridge * jnp.eye(xu.shape[0], dtype=xu.dtype)
     vs, ys, lam, chol_a = _fitc_factors(psi, xu, x, y, mask, jnp.linalg.cholesky(kmm), noise_floor)
     c = _tri(chol_a, vs @ ys, lower=True)
@@ -62,7 +62,7 @@ def fitc_neg_log_likelihood(psi, xu, x, y, mask, ridge, noise_floor) -> jax.Arra
 
 
 def fitc_objective(xu: jax.Array, hyper: GPHyper, data: GPData, ridge: jax.Array, config: GPConfig) -> jax.Array:
-    """Σ_a −log p_FITC(y_a) as a function of the shared inducing inputs X_u (tasks.md §4).
+    """Σ_a −log p_FITC(y_a) as a function of the shared inducing inputs X_u.
 
     ``ridge`` is the (E,) jitter on each K_mm (normally ``config.fitc_jitter``).
     """
@@ -84,7 +84,7 @@ def fitc_ridge(hyper: GPHyper, xu: jax.Array, config: GPConfig) -> jax.Array:
 
 
 def fitc_posterior(hyper: GPHyper, data: GPData, xu: jax.Array, config: GPConfig) -> tuple[GPPosterior, jax.Array, jax.Array]:
-    """FITC β_a and K_mm⁻¹ − B_a⁻¹ for all outputs (tasks.md §4), with adaptive K_mm jitter.
+    """FITC β_a and K_mm⁻¹ − B_a⁻¹ for all outputs, with adaptive K_mm jitter.
 
     Returns:
       (posterior, jitter (E,), ok (E,)) as :func:`pipps.gp.posterior.full_posterior`.
@@ -112,7 +112,7 @@ def fitc_posterior(hyper: GPHyper, data: GPData, xu: jax.Array, config: GPConfig
 
 
 def initial_inducing(key: jax.Array, data: GPData, num_inducing: int) -> jax.Array:
-    """A random subset, without replacement, of the real training inputs: (M, Dz) (tasks.md §4).
+    """A random subset, without replacement, of the real training inputs: (M, Dz) (PILCO's first FITC start).
 
     Requires at least ``num_inducing`` real rows (checked by the caller on the host).
     """

@@ -1,4 +1,4 @@
-"""The SE-ARD kernel k_a(z, z') = σ_f,a² exp(−½ (z−z')ᵀ Λ_a⁻¹ (z−z')) (tasks.md §4).
+"""The SE-ARD kernel k_a(z, z') = σ_f,a² exp(−½ (z−z')ᵀ Λ_a⁻¹ (z−z')) (docs/gp.md, "Model").
 
 The noise term σ_n² δ is added by the callers that build K_y. Every function takes the
 hyperparameters of one output (``log_lengthscale`` (Dz,), ``log_signal`` ()) or of all

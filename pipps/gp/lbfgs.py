@@ -1,7 +1,7 @@
-"""A jittable, vmappable L-BFGS minimiser with a strong-Wolfe line search (tasks.md §4, §6).
+"""A jittable, vmappable L-BFGS minimiser with a strong-Wolfe line search (GP training; docs/gp.md).
 
 ``optax.lbfgs`` (zoom line search, Nocedal & Wright Alg. 3.5/3.6) driven by a
-``lax.while_loop``, with the safeguards of minimize.m (§6):
+``lax.while_loop``, with the safeguards of Rasmussen's minimize.m:
 
 * a trial point whose value or gradient is NaN/Inf, or that does not strictly decrease the
   objective, is rejected: the iterate stays where it was and the L-BFGS memory is reset

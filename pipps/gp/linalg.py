@@ -2,8 +2,8 @@
 
 A failed Cholesky in JAX returns NaNs instead of raising. :func:`adaptive_cholesky` tries the
 base jitter, then escalates ×10 (starting from ``jitter_min · scale``) until the factor is
-finite, and returns the jitter it used so that callers can report it (tasks.md §4 asks for
-robust training; docs/gp.md, "Noise floor and jitter").
+finite, and returns the jitter it used so that callers can report it (training must survive
+ill-conditioned data; docs/gp.md, "Noise floor, std floors and jitter — all reported").
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """A full-GP posterior whose predictive variance keeps only the directions it needs, with a
-certificate (issue 17; docs/performance.md, "The certified low-rank variance").
+certificate (docs/performance.md, "The certified low-rank variance, measured").
 
 For one output with ``K = U diag(λ) Uᵀ`` on the real (unpadded) points and ``σ² = σ_n² + jitter``,
 

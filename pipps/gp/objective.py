@@ -1,4 +1,4 @@
-"""The penalised negative log marginal likelihood of one output (tasks.md §4, PILCO hypCurb).
+"""The penalised negative log marginal likelihood of one output (PILCO's hypCurb; docs/gp.md).
 
     L_a(ψ_a) = ½ yᵀK_y⁻¹y + ½ log|K_y| + (n/2) log 2π
                + Σ_d ((log ℓ_{a,d} − log s_d) / log ls_curb)^p
@@ -74,5 +74,5 @@ def penalty(psi: jax.Array, log_input_std: jax.Array, config: GPConfig) -> jax.A
 
 
 def hyper_objective(psi, x, y, mask, log_input_std, jitter, config: GPConfig) -> jax.Array:
-    """The training objective L_a(ψ_a) of one output (tasks.md §4), to be minimised."""
+    """The training objective L_a(ψ_a) of one output, to be minimised."""
     return neg_log_marginal(psi, x, y, mask, jitter, config.noise_floor) + penalty(psi, log_input_std, config)

@@ -1,4 +1,4 @@
-"""Full-GP posterior, built once per training, and batched prediction (tasks.md §4, §5.4).
+"""Full-GP posterior, built once per training, and batched prediction (docs/gp.md).
 
 :func:`full_posterior` stores β_a = (K_a + σ_n²I)⁻¹ y_a and (K_a + σ_n²I)⁻¹ for every output
 (padded rows and columns zeroed). :func:`predict` evaluates the mean k*ᵀβ and, only when asked
@@ -25,7 +25,7 @@ def with_noise_floor(hyper: GPHyper, noise_floor: float) -> GPHyper:
 
 
 def full_posterior(hyper: GPHyper, data: GPData, config: GPConfig) -> tuple[GPPosterior, jax.Array, jax.Array]:
-    """β and (K + σ_n²I)⁻¹ of the full GP for all outputs (tasks.md §4, §5.4).
+    """β and (K + σ_n²I)⁻¹ of the full GP for all outputs.
 
     The Cholesky factor uses the adaptive jitter of :func:`pipps.gp.linalg.adaptive_cholesky`
     starting from ``config.jitter``.

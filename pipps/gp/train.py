@@ -1,4 +1,4 @@
-"""GP training (tasks.md §4): pure, vmappable pieces.
+"""GP training (docs/gp.md): pure, vmappable pieces.
 
 * :func:`initial_hyper` — PILCO's first-time initialisation.
 * :func:`fit_hyper` — per-output penalised marginal-likelihood training with L-BFGS, mapped
@@ -33,7 +33,7 @@ def input_log_std(data: GPData, config: GPConfig) -> tuple[jax.Array, jax.Array]
 
 
 def initial_hyper(data: GPData, config: GPConfig) -> tuple[GPHyper, jax.Array]:
-    """First-time initialisation (tasks.md §4): log ℓ = log s_d, σ_f = std(y_a), σ_n = std(y_a)/10.
+    """First-time initialisation (PILCO's): log ℓ = log s_d, σ_f = std(y_a), σ_n = std(y_a)/10.
 
     Degenerate targets: where std(y_a) < ``target_std_floor`` the root mean square of y_a is
     used instead (a zero-mean GP must explain a constant offset with σ_f), floored at
@@ -62,7 +62,7 @@ def start_jitter(rows: jax.Array, data: GPData, config: GPConfig) -> jax.Array:
 
 
 def fit_hyper(data: GPData, init: Optional[GPHyper], config: GPConfig) -> tuple[GPHyper, HyperFitInfo]:
-    """Train the hyperparameters of all outputs (tasks.md §4).
+    """Train the hyperparameters of all outputs (docs/gp.md, "Optimiser and budgets").
 
     Pure; vmappable over data sets on accelerators (on CPU with jaxlib 0.10 batched LAPACK calls
     can deadlock, see :func:`pipps.gp.linalg.map_outputs`; use ``lax.map`` there).
@@ -103,7 +103,7 @@ def fit_hyper(data: GPData, init: Optional[GPHyper], config: GPConfig) -> tuple[
 
 
 def fit_inducing(data: GPData, hyper: GPHyper, xu0: jax.Array, config: GPConfig, max_iters) -> tuple[jax.Array, FitcFitInfo]:
-    """Optimise the shared inducing inputs X_u with fixed hyperparameters (tasks.md §4).
+    """Optimise the shared inducing inputs X_u with fixed hyperparameters (docs/gp.md, "Sparse FITC").
 
     Minimises Σ_a −log p_FITC(y_a) with L-BFGS (memory ``fitc_memory_size``) for at most
     ``max_iters`` line searches (may be traced): ``config.fitc_first_iters`` the first time,

@@ -1,10 +1,10 @@
-"""Pytrees and configuration of the GP dynamics model (tasks.md §4).
+"""Pytrees and configuration of the GP dynamics model (docs/gp.md).
 
 * :class:`GPHyper` — unconstrained hyperparameters ψ_a = [log ℓ_a, log σ_f,a, log σ_n,a]
   of the E independent SE-ARD GPs, stored output-major.
 * :class:`GPData` — a (possibly padded) training set; rows with ``mask=False`` are padding
   and have exactly no effect on training or prediction.
-* :class:`GPPosterior` — what prediction and moment matching (§5.4) need, computed once per
+* :class:`GPPosterior` — what prediction and moment matching need, computed once per
   training: ``beta`` and ``inv`` for the full GP, or their FITC counterparts.
 * :class:`FitState` — what the next training warm-starts from (hyperparameters, inducing inputs).
 * :class:`GPConfig` — settings; a pytree whose numbers are traced and whose structural
@@ -21,7 +21,7 @@ import jax.numpy as jnp
 
 
 class GPHyper(NamedTuple):
-    """Unconstrained SE-ARD hyperparameters of E independent GPs (tasks.md §4).
+    """Unconstrained SE-ARD hyperparameters of E independent GPs.
 
     Attributes:
       log_lengthscale: (E, Dz) log ℓ_{a,d}.
@@ -62,7 +62,7 @@ class GPData(NamedTuple):
 
     Attributes:
       inputs: (N, Dz) z_i = [x̃_i[I]; u_i].
-      targets: (N, E) Δ_i (state differences; not normalised, tasks.md §4).
+      targets: (N, E) Δ_i (state differences; not normalised, as in PILCO).
       mask: (N,) bool, True for real rows.
     """
 
@@ -72,7 +72,7 @@ class GPData(NamedTuple):
 
 
 class GPPosterior(NamedTuple):
-    """The GP posterior in the form §5.4 consumes, identical for the full GP and FITC.
+    """The GP posterior in the form moment matching consumes, identical for the full GP and FITC.
 
     Attributes:
       hyper: the hyperparameters (noise already at or above the noise floor).
@@ -93,7 +93,7 @@ class GPPosterior(NamedTuple):
 
 
 class FitState(NamedTuple):
-    """What the next training warm-starts from (tasks.md §1, step 1)."""
+    """What the next training warm-starts from."""
 
     hyper: GPHyper
     inducing: Optional[jax.Array] = None  # (M, Dz) FITC inducing inputs once FITC has been used
@@ -132,10 +132,10 @@ _STATIC_FIELDS = ("max_linesearch_steps", "memory_size", "penalty_power", "max_j
 
 @dataclasses.dataclass(frozen=True)
 class GPConfig:
-    """Settings of GP training (tasks.md §4); a pytree (numbers are leaves, see _STATIC_FIELDS).
+    """Settings of GP training (docs/gp.md); a pytree (numbers are leaves, see _STATIC_FIELDS).
 
-    Defaults follow PILCO where the spec fixes them. ``fitc_iters``/``fitc_first_iters`` are
-    deliberately smaller than PILCO's 500/1500 line searches (see docs/gp.md, "Budgets").
+    Defaults follow PILCO where PILCO fixes them. ``fitc_iters``/``fitc_first_iters`` are
+    deliberately smaller than PILCO's 500/1500 line searches (see docs/gp.md, "Optimiser and budgets").
     """
 
     # full-GP hyperparameter training (PILCO: 300 line searches, ≤10 evaluations each)

@@ -1,5 +1,5 @@
-"""Optimisers: the quasi-Newton minimiser of tasks.md §6 (PILCO's policy search, fixed-seed
-objectives) and the thesis' normalized momentum step (estimators.md §8)."""
+"""Optimisers: the quasi-Newton minimiser of Rasmussen's minimize.m (PILCO's policy search,
+fixed-seed objectives) and the thesis' normalized momentum step (thesis §4.5.1)."""
 
 from pipps.optimizers.normalized import NormalizedMomentumState, normalized_momentum
 from pipps.optimizers.quasi_newton import (

@@ -1,4 +1,4 @@
-"""The thesis' RMSprop-like normalized step with momentum, as an optax transformation (estimators.md §8).
+"""The thesis' RMSprop-like normalized step with momentum, as an optax transformation (thesis §4.5.1).
 
 ``m ← γ m + g / sqrt(g² + V[g])``, ``θ ← θ − α m``, elementwise, where ``V[g]`` is the
 per-parameter variance of the mean gradient estimated from the batch (per-particle
@@ -36,7 +36,7 @@ def normalized_term(g: jax.Array, v: jax.Array) -> jax.Array:
 
 
 def normalized_momentum(learning_rate: float = 5e-4, momentum: float = 0.9) -> optax.GradientTransformationExtraArgs:
-    """The thesis optimizer (estimators.md §8). ``update`` requires ``grad_variance=V[g]``."""
+    """The thesis optimizer (§4.5.1). ``update`` requires ``grad_variance=V[g]``."""
     if not learning_rate > 0:
         raise ValueError(f"learning_rate must be positive, got {learning_rate}")
     if not 0.0 <= momentum < 1.0:

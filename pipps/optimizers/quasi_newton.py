@@ -1,4 +1,4 @@
-"""Quasi-Newton minimisation with minimize.m semantics (tasks.md §6), jittable and vmappable.
+"""Quasi-Newton minimisation with minimize.m semantics (docs/pilco.md, "The optimiser"), jittable and vmappable.
 
 :func:`minimize` is dense BFGS (inverse Hessian initialised to I, ≤ 1000 parameters by default)
 or L-BFGS (memory ``min(100, n)``) on a pytree, with a bracketing line search that accepts a
@@ -324,7 +324,7 @@ def minimize(
     *,
     value_and_grad: Callable | None = None,
 ):
-    """Minimise a scalar function of a pytree from ``x0`` (tasks.md §6); pure, jittable, vmappable.
+    """Minimise a scalar function of a pytree from ``x0`` as minimize.m does; pure, jittable, vmappable.
 
     Args:
       fun: ``fun(params) -> scalar``; differentiated with ``jax.value_and_grad`` unless

@@ -1,4 +1,4 @@
-"""Particle predictions through the learned model (thesis Algorithm 3; estimators.md §1, §7).
+"""Particle predictions through the learned model (thesis Algorithm 3; GR, thesis §4.3.1).
 
 P particles through T steps of policy → model → sample, as one ``lax.scan`` over time with
 the particles vectorised. Step ``t`` (0-based, ``t = 0..T−1``) maps ``x_t`` to
@@ -39,7 +39,7 @@ class RolloutConfig:
       model_variance: include the GP's epistemic variance v_f; False is the ``−σ_f``
         variant and then no GP variance is computed at all.
       noise_multiplier: factor on σ_n² (the ``+σ_n`` variant: 100 for TP, 25 for GTP).
-      resampling: "none" or "gaussian" (GR, estimators.md §7).
+      resampling: "none" or "gaussian" (GR, thesis §4.3.1).
       resample_jitter: added to the diagonal of the GR covariance before its Cholesky.
       variance_precision: "float64" or "float32", the precision of the GP variance's
         O(P·E·M²) product (:func:`pipps.particles.models.model_output`).
@@ -117,7 +117,7 @@ def model_input(task: Problem, policy, x: jax.Array) -> tuple[jax.Array, jax.Arr
 
 
 def gaussian_resample(mean: jax.Array, std: jax.Array, eps: jax.Array, jitter: float) -> jax.Array:
-    """GR (estimators.md §7): a fresh sample from one Gaussian fitted to the mixture Σ_i N(μ_i, s_i²)/P.
+    """GR (thesis §4.3.1): a fresh sample from one Gaussian fitted to the mixture Σ_i N(μ_i, s_i²)/P.
 
     μ̂ = mean_i μ_i, Σ̂ = cov_i(μ_i) + mean_i diag(s_i²) (the mixture's exact moments, so the
     covariance over i uses 1/P), z_i = μ̂ + L ε_i with L = chol(Σ̂ + jitter·I).
@@ -168,7 +168,7 @@ def particle_rollout(task: Problem, policy, model, noise: Noise, config: Rollout
 
 
 def reparameterized_objective(task: Problem, policy, model, noise: Noise, config: RolloutConfig) -> jax.Array:
-    """J(θ) for fixed noise, written plainly so ``jax.grad`` of it is the RP gradient (estimators.md §2).
+    """J(θ) for fixed noise, written plainly so ``jax.grad`` of it is the RP gradient.
 
     The reference the custom backward pass is tested against, and the objective of the
     fixed-seed (``_FS``) variants.

@@ -10,7 +10,7 @@ its epistemic variance ``v_f(z)``, and — for the custom backward pass — the 
   and ``noise_variance`` (E,) (e.g. :class:`pipps.systems.linear_gaussian.LinearGaussianModel`):
   the Jacobians by forward-mode autodiff per particle.
 
-Closed-form GP Jacobians (SE-ARD, tasks.md §4). With ``k_{a,m} = σ_f,a² exp(-½ Σ_d (z_d − x_{m,d})²/ℓ_{a,d}²)``:
+Closed-form GP Jacobians (SE-ARD kernel, docs/gp.md). With ``k_{a,m} = σ_f,a² exp(-½ Σ_d (z_d − x_{m,d})²/ℓ_{a,d}²)``:
 ``∂m_a/∂z = −Σ_m β_{a,m} k_{a,m} (z − x_m)/ℓ_a²`` and, with ``w_a = A_a k_a`` (the product the
 variance ``σ_f² − k_aᵀ A_a k_a`` computes anyway), ``∂v_a/∂z = 2 Σ_m w_{a,m} k_{a,m} (z − x_m)/ℓ_a²``.
 Both are O(P·E·M·Dz) once ``w`` is known, so the Jacobians cost far less than the O(P·E·M²)

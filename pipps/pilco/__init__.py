@@ -1,9 +1,10 @@
-"""The PILCO moment-matching baseline (tasks.md §5; thesis Algorithm 2). See docs/pilco.md.
+"""The PILCO moment-matching baseline (thesis Algorithm 2). See docs/pilco.md.
 
-Closed-form blocks (each returns ``GaussianMap(M, S, C)`` in the §0 convention):
-:func:`saturation_moments` (§5.3), :func:`control_moments` / :func:`unsquashed_moments`
-(§5.2 + §5.3), :func:`gp_moments` (§5.4, full GP and FITC alike), :func:`dynamics_moments`
-(GP or any model with ``moments``). Assembly: :func:`propagate` (§5.5), :func:`objective`
+Closed-form blocks (each returns ``GaussianMap(M, S, C)`` in the convention of :mod:`pipps.gaussian`):
+:func:`saturation_moments` (PILCO's ``gSat.m``), :func:`control_moments` / :func:`unsquashed_moments`
+(controller, then saturation), :func:`gp_moments` (a GP at a Gaussian input, full GP and FITC alike),
+:func:`dynamics_moments` (GP or any model with ``moments``). Assembly: :func:`propagate` (one step,
+PILCO's ``propagated.m``), :func:`objective`
 (``J = Σ_{t=1..H} E[c(x_t)]``, one ``lax.scan``), :func:`trajectory`; :func:`policy_input_noise` is
 the PILCO V0.9 policy-input noise term their ``policy_noise`` option adds. Policy search:
 :func:`optimize_policy`.

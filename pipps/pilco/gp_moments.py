@@ -1,9 +1,9 @@
-"""An SE-kernel regression at a Gaussian input: the GP of tasks.md §5.4 and the RBF controller of §5.2.
+"""An SE-kernel regression at a Gaussian input: the GP dynamics model and the RBF controller (PILCO's gp*d.m).
 
 Both are ``f_a(z) = Σ_i β_{a,i} k_a(z, z_i)`` with ``k_a(z, z') = σ_{f,a}² exp(−½ (z−z')ᵀ Λ_a⁻¹ (z−z'))``
 (``Λ_a = diag(ℓ_a²)``), evaluated at ``z ~ N(μ, Σ)``. With ``ν_i = z_i − μ``:
 
-* mean (§5.4): ``q_{a,i} = σ_{f,a}² |ΣΛ_a⁻¹ + I|^{−½} exp(−½ ν_iᵀ(Σ + Λ_a)⁻¹ν_i)``, ``M_a = β_aᵀ q_a``;
+* mean: ``q_{a,i} = σ_{f,a}² |ΣΛ_a⁻¹ + I|^{−½} exp(−½ ν_iᵀ(Σ + Λ_a)⁻¹ν_i)``, ``M_a = β_aᵀ q_a``;
 * input–output: ``C_{:,a} = Σ⁻¹Cov[z, f_a] = Σ_i β_{a,i} q_{a,i} (Σ + Λ_a)⁻¹ν_i``;
 * second moments: ``Q^{ab}_{ij} = k_a(z_i, μ) k_b(z_j, μ) |R_ab|^{−½} exp(½ ζ_ijᵀ R_ab⁻¹ Σ ζ_ij)``,
   ``R_ab = Σ(Λ_a⁻¹ + Λ_b⁻¹) + I``, ``ζ_ij = Λ_a⁻¹ν_i + Λ_b⁻¹ν_j``, and
@@ -123,7 +123,7 @@ def se_moments(
     second_moment_jitter: float = 0.0,
     weights: jax.Array | None = None,
 ) -> GaussianMap:
-    """Moments of ``f(z) = [Σ_i β_{a,i} k_a(z, z_i)]_a`` at ``z ~ N(mean, cov)`` (tasks.md §5.4).
+    """Moments of ``f(z) = [Σ_i β_{a,i} k_a(z, z_i)]_a`` at ``z ~ N(mean, cov)`` (docs/pilco.md).
 
     Args:
       inputs: (n, D) training inputs / inducing inputs / RBF centres z_i.
@@ -134,7 +134,7 @@ def se_moments(
       inv: (E, n, n) ``(K_a + σ_n²I)⁻¹`` (full GP) or ``K_mm⁻¹ − B_a⁻¹`` (FITC) to include the
         model-uncertainty term ``δ_ab(σ_{f,a}² − tr[inv_a Q^{aa}])``; None leaves it out
         (a static choice: nothing of it is traced).
-      second_moment_jitter: added to the diagonal of ``E[f fᵀ]`` before centring (§5.2: 1e-6
+      second_moment_jitter: added to the diagonal of ``E[f fᵀ]`` before centring (PILCO's 1e-6
         for the RBF controller).
       weights: :func:`pair_weights` of ``(beta, inv)``, precomputed: the same moments (to rounding)
         with the β and trace terms in one pass over each Q; needs ``inv``.
@@ -160,7 +160,7 @@ def se_moments(
 
 def gp_moments(post: GPPosterior | WeightedGP, mean: jax.Array, cov: jax.Array, *,
                model_uncertainty: bool = True) -> GaussianMap:
-    """§5.4: the latent GP ``Δ = f(z)`` at ``z ~ N(mean, cov)``, full or FITC posterior alike.
+    """The latent GP ``Δ = f(z)`` at ``z ~ N(mean, cov)``, full or FITC posterior alike.
 
     ``model_uncertainty`` (static) keeps the ``E_z[var_f f_a(z)]`` term of ``S``; False drops it
     and its O(E n²) trace. No noise variance σ_n² is added (the latent function is predicted).

@@ -1,9 +1,9 @@
-"""PILCO's policy search: quasi-Newton on the moment-matching objective (tasks.md §1 step 2, §6).
+"""PILCO's policy search: quasi-Newton on the moment-matching objective (minimize.m's semantics).
 
 ``optimize_policy(task, model, policy)`` minimises ``J(θ) = Σ_{t=1..H} E[c(x_t)]`` over the
 policy's parameters (its pytree leaves; ``u_max`` is static) with :func:`pipps.optimizers.minimize`,
 warm-started from the given policy. The budget is the problem's own (``Problem.pilco_budget``,
-set by its task); the built-in tasks carry PILCO's (tasks.md §2, §3.7):
+set by its task); the built-in tasks carry PILCO's (``settings_cp.m``, ``settings_unicycle.m``):
 
 | task | budget | evaluations per line search |
 |---|---|---|
@@ -36,7 +36,7 @@ class PolicySearchConfig:
 
     Attributes:
       optimizer: the quasi-Newton settings (budgets, line search); None → :func:`pilco_budget`.
-      model_uncertainty: keep §5.4's ``E_z[var_f]`` term in the propagation.
+      model_uncertainty: keep the GP's ``E_z[var_f]`` (model-uncertainty) term in the propagation.
       horizon: planning horizon (None → ``task.horizon``).
       checkpoint: rematerialise each step in the backward pass (``jax.checkpoint``): H× less
         memory for the stored (E², n, n) intermediates and, measured on the cart-pole benchmark

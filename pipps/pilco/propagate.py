@@ -1,12 +1,12 @@
-"""Moment-matching propagation and PILCO's objective (tasks.md §5, thesis Algorithm 2).
+"""Moment-matching propagation and PILCO's objective (thesis Algorithm 2; docs/pilco.md).
 
 One step maps ``x_t ~ N(μ, Σ)`` to ``x_{t+1} ~ N(μ', Σ')`` by building the joint Gaussian of
-``[x̃; u; Δ]`` block by block (§5.5), every cross-covariance filled by the §0 rule
+``[x̃; u; Δ]`` block by block (PILCO's ``propagated.m``), every cross-covariance filled by the rule
 ``Cov[w, y] = Cov[w, v] C``:
 
-1. ``x̃ = [x; sin x_a, cos x_a]`` (§5.1, :func:`pipps.gaussian.trig_augment`);
-2. ``u = π(x̃[P])``: controller and saturation moments (§5.2–5.3), ``Cov[x̃, u] = Σ̃_{:,P} C_u``;
-3. ``Δ = f(z)``, ``z = [x̃[I]; u]``: the model at a Gaussian input — §5.4 for a
+1. ``x̃ = [x; sin x_a, cos x_a]`` (:func:`pipps.gaussian.trig_augment`);
+2. ``u = π(x̃[P])``: controller and saturation moments, ``Cov[x̃, u] = Σ̃_{:,P} C_u``;
+3. ``Δ = f(z)``, ``z = [x̃[I]; u]``: the model at a Gaussian input — :func:`gp_moments` for a
    :class:`~pipps.gp.GPPosterior` (full or FITC), otherwise ``model.moments(mean_z, cov_z)``
    (e.g. the exact :class:`~pipps.systems.linear_gaussian.LinearGaussianModel`);
 4. ``μ' = μ + M_Δ``, ``Σ' = Σ + S_Δ + Cov[x, Δ] + Cov[x, Δ]ᵀ`` with ``Cov[x, Δ] = Cov[x, z] C_Δ``,
@@ -59,13 +59,13 @@ class PilcoTrajectory(NamedTuple):
     means: jax.Array  # (H+1, D)
     covs: jax.Array  # (H+1, D, D)
     cost_mean: jax.Array  # (H+1,) E[c(x_t)]
-    cost_var: jax.Array  # (H+1,) Var[c(x_t)] (reporting only, §5.6)
+    cost_var: jax.Array  # (H+1,) Var[c(x_t)] (reporting only)
 
 
 def dynamics_moments(model, mean: jax.Array, cov: jax.Array, *, model_uncertainty: bool = True) -> GaussianMap:
     """Moments of the state difference ``Δ = f(z)`` at ``z ~ N(mean, cov)``.
 
-    A :class:`~pipps.gp.GPPosterior` goes through §5.4 (``model_uncertainty`` static); any other
+    A :class:`~pipps.gp.GPPosterior` goes through :func:`gp_moments` (``model_uncertainty`` static); any other
     model must provide ``moments(mean, cov) -> GaussianMap`` (``model_uncertainty`` is then
     the model's own business and ignored here).
     """
@@ -89,7 +89,7 @@ def _selection(rows: int, idx) -> np.ndarray:
 def policy_input_noise(task: Problem, model) -> jax.Array:
     """(D,) the variances PILCO V0.9 adds to the state covariance given to the policy (module doc):
     ``σ²_{n,a}/2`` for each model-state component ``a``, from GP output ``a``'s noise variance
-    (halved: every component is a difference target, tasks.md §1). ``model``: a
+    (halved: every component is a difference target). ``model``: a
     :class:`~pipps.gp.GPPosterior` (or its :class:`WeightedGP`) or any model with ``noise_variance``."""
     post = model.post if isinstance(model, WeightedGP) else model
     noise = getattr(post, "noise_variance", None)
@@ -103,7 +103,7 @@ def policy_input_noise(task: Problem, model) -> jax.Array:
 
 
 def state_control_joint(task: Problem, policy, mean: jax.Array, cov: jax.Array, input_noise=None):
-    """Joint Gaussian of ``[x̃; u]`` (§5.5 steps 1–2).
+    """Joint Gaussian of ``[x̃; u]`` (steps 1–2 of the module docstring).
 
     ``input_noise``: None (default), or (D,) variances added to Σ for the policy's input only
     (PILCO V0.9, module doc): the controller is evaluated at the trig augmentation of
@@ -136,7 +136,7 @@ def step_moments(
     model_uncertainty: bool = True,
     input_noise: jax.Array | None = None,
 ) -> GaussianMap:
-    """One moment-matching step as a Gaussian map (tasks.md §5.5).
+    """One moment-matching step as a Gaussian map (steps 1–4 of the module docstring).
 
     ``input_noise``: see :func:`state_control_joint` (None: the policy sees the state's distribution).
 
@@ -166,7 +166,7 @@ def propagate(
     model_uncertainty: bool = True,
     input_noise: jax.Array | None = None,
 ) -> tuple[jax.Array, jax.Array]:
-    """One moment-matching step ``N(μ, Σ) → N(μ', Σ')`` of the model state (tasks.md §5.5)."""
+    """One moment-matching step ``N(μ, Σ) → N(μ', Σ')`` of the model state (the module docstring's steps)."""
     g = step_moments(task, policy, model, mean, cov, model_uncertainty=model_uncertainty, input_noise=input_noise)
     return g.M, g.S
 
@@ -207,7 +207,7 @@ def objective(
     checkpoint: bool = False,
     policy_noise: bool = False,
 ) -> jax.Array:
-    """PILCO's ``J(θ) = Σ_{t=1..H} E[c(x_t)]`` by moment matching (tasks.md §1 step 2, §5).
+    """PILCO's ``J(θ) = Σ_{t=1..H} E[c(x_t)]`` by moment matching (thesis Algorithm 2).
 
     Args:
       task: the task (horizon, index sets, cost, planning start).
@@ -215,7 +215,7 @@ def objective(
       model: a :class:`~pipps.gp.GPPosterior` (full or FITC) or a model with ``moments``.
       horizon: H (default ``task.horizon``); static.
       init: ``(mean, cov)`` of ``x_0`` (default the task's ``model_init_mean/cov``).
-      model_uncertainty: static; False drops §5.4's ``E_z[var_f]`` term.
+      model_uncertainty: static; False drops the GP's ``E_z[var_f]`` term.
       checkpoint: static; recompute each step in the backward pass (``jax.checkpoint``) instead
         of storing its intermediates — H× less memory for about one extra forward pass.
       policy_noise: static; True evaluates the policy at the state distribution plus the model's

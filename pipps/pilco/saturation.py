@@ -1,9 +1,9 @@
-"""Moments of the saturated control ``u = ū ⊙ sat(ũ)`` for Gaussian ``ũ`` (tasks.md §5.3).
+"""Moments of the saturated control ``u = ū ⊙ sat(ũ)`` for Gaussian ``ũ`` (PILCO's ``gSat.m``).
 
 ``sat(w) = (9 sin w + sin 3w)/8``, so ``u_a = ū_a Σ_{k∈{1,3}} γ_k sin(k ũ_a)`` with
 ``γ_1 = 9/8``, ``γ_3 = 1/8``. The vector ``[ũ; 3ũ]`` is (degenerate) Gaussian, so the
 moments of all the sines — every pair ``(k ũ_a, l ũ_b)``, k, l ∈ {1, 3}, all outputs a, b —
-come from the sin–sin formula of §5.1 (:func:`pipps.gaussian.trig_moments`), and ``u`` is a
+come from the sin–sin formula of the trig features (:func:`pipps.gaussian.trig_moments`), and ``u`` is a
 linear map of them. ``C = V⁻¹Cov[ũ, u] = E[∂u/∂ũ]ᵀ = diag(R)`` (Stein's lemma), with
 ``R_a = ū_a (9/8 e^{−V_aa/2} cos m_a + 3/8 e^{−9V_aa/2} cos 3m_a)``.
 """
@@ -21,7 +21,7 @@ SAT_FREQUENCIES = (1.0, 3.0)
 
 
 def saturation_moments(mean: jax.Array, cov: jax.Array, u_max) -> GaussianMap:
-    """Moments of ``u = u_max ⊙ sat(ũ)`` for ``ũ ~ N(mean, cov)`` (tasks.md §5.3).
+    """Moments of ``u = u_max ⊙ sat(ũ)`` for ``ũ ~ N(mean, cov)`` (the module docstring).
 
     Args:
       mean: (F,) mean of the unsquashed control ũ.

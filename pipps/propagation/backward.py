@@ -1,4 +1,4 @@
-"""The custom backward pass: one reverse sweep over time (thesis Alg. 5; estimators.md §2–§6).
+"""The custom backward pass: one reverse sweep over time (thesis Alg. 5; docs/estimators.md).
 
 The sweep runs ``t = T, …, 1`` over the :class:`~pipps.particles.forward.ParticleRecord` and
 carries, per particle, the returns ``G_{i,t}`` and — when the estimator has a pathwise part — the
@@ -88,7 +88,7 @@ def _to_z(gam: ZetaGrad, jac_mean, jac_std) -> jax.Array:
 
 def mean_returns(problem: Problem, record: ParticleRecord, costs: CostTerms) -> jax.Array:
     """Per-step mean return-to-go of a forward record under ``costs``, (T,): the "previous" baseline's
-    first value, from the extra rollout (estimators.md §3)."""
+    first value, from the extra rollout made when the optimizer starts."""
     c = jax.vmap(lambda x_t, c_t: costs.returns(problem.cost, x_t, c_t))(record.x_next, record.cost)  # (T, P)
     returns = jnp.cumsum(c[::-1], axis=0)[::-1]
     return jnp.mean(returns, axis=-1)

@@ -1,4 +1,4 @@
-"""Combiners: how one step's gradient parts become one contribution (estimators.md §4 steps 5–7, §9).
+"""Combiners: how one step's gradient parts become one contribution (thesis Alg. 5: weigh, mix, pass back).
 
 A combiner is a :class:`~pipps.propagation.pieces.Combiner`: ``combine(state, kinds, parts) ->
 (state, Combined)`` takes the parts' cotangents (:class:`~pipps.propagation.pieces.PartCotangents`:
@@ -15,7 +15,7 @@ on the LR part, ``1 − k_LR`` on the pathwise part — and mixes gradients and 
 * ``inverse_variance`` (thesis Alg. 5): ``k = σ²_RP / (σ²_RP + σ²_LR)`` with ``σ²`` the trace of the
   across-particle variance of the per-particle policy-parameter gradients. Guards: both zero → ½;
   a non-finite variance counts as +∞ (both non-finite → ½, and the caller zeroes the step).
-* ``robust`` (AoBG, Suh et al., estimators.md §9): the weight on the first-order (RP) estimate is
+* ``robust`` (AoBG, Suh et al.; beyond the thesis, off by default): the weight on the first-order (RP) estimate is
   ``α = min(α_∞, max(γ − ε, 0)/B)`` with ``α_∞ = σ²_LR/(σ²_LR + σ²_RP)``, ``B = ‖ḡ_RP − ḡ_LR‖`` and
   ``ε = z·sqrt(σ²_LR/P)`` a confidence radius of the LR mean; ``k = 1 − α``.
 * ``action_nodes`` (``tpx``): the parts mixed at the action nodes, a weight per action coordinate.
@@ -46,7 +46,7 @@ def _as_inf_if_nonfinite(v: jax.Array) -> jax.Array:
 
 
 def inverse_variance_k(var_rp: jax.Array, var_lr: jax.Array) -> jax.Array:
-    """k_LR = σ²_RP / (σ²_RP + σ²_LR) with the guards of estimators.md §4."""
+    """k_LR = σ²_RP / (σ²_RP + σ²_LR) with the guards above (both zero → ½; non-finite → +∞)."""
     vr = _as_inf_if_nonfinite(var_rp)
     vl = _as_inf_if_nonfinite(var_lr)
     both_zero = (vr == 0.0) & (vl == 0.0)
@@ -97,14 +97,15 @@ class Single(Stateless):
 
 
 def _no_weight_on_nonfinite(k, var_rp, var_lr):
-    """k with the guards of estimators.md §4: a part whose variance is not finite gets no weight
+    """k with the guards of :func:`inverse_variance_k`: a part whose variance is not finite gets no weight
     (both not finite: ``k`` as it is, and the caller's update refuses the step)."""
     k = jnp.where(jnp.isfinite(var_rp), k, 1.0)
     return jnp.where(jnp.isfinite(var_lr), k, jnp.where(jnp.isfinite(var_rp), 0.0, k))
 
 
 def _total_propagation(rule, state, g, messages) -> tuple:
-    """Steps 5–7 of estimators.md §4 for parts (pathwise, LR); a non-finite part gets no weight.
+    """Alg. 5's last steps (weigh the parts, mix their gradients, pass back the mixed message) for
+    parts (pathwise, LR); a non-finite part gets no weight.
     Returns the source's next state and the :class:`Combined`."""
     g_rp, g_lr = g[0], g[1]
     var_rp, var_lr = variance_trace(g_rp), variance_trace(g_lr)
@@ -154,7 +155,7 @@ class _TotalPropagationCombiner(_WeighsTwoParts):
 
 @strategy(traced=("source",))
 class InverseVariance(_TotalPropagationCombiner):
-    """Total propagation with the inverse-variance weight (thesis Alg. 5; estimators.md §4)."""
+    """Total propagation with the inverse-variance weight (thesis Alg. 5)."""
 
     source: WeightSource
     messages: str = "mixed"  # "mixed" (Alg. 5) or "pathwise" (pass γ^RP back; mix the contributions only)
@@ -168,7 +169,7 @@ class InverseVariance(_TotalPropagationCombiner):
 
 @strategy(traced=("gamma", "z", "source"))
 class Robust(_TotalPropagationCombiner):
-    """Total propagation with the bias-aware weight of Suh et al. (estimators.md §9); γ and z are traced."""
+    """Total propagation with the bias-aware weight of Suh et al. (AoBG); γ and z are traced."""
 
     gamma: float
     z: float
@@ -275,8 +276,8 @@ def action_nodes(k_lr: str | float = DEFAULT_K_LR) -> ActionNodes:
 
 
 def robust(gamma: float = float("inf"), z: float = 2.0, k_lr: str | float = DEFAULT_K_LR, messages: str = "mixed") -> Robust:
-    """The robust combiner (estimators.md §9): bias bound ``γ ≥ 0`` (∞: inverse variance), confidence
-    ``z ≥ 0``; ``messages`` as for :func:`inverse_variance`."""
+    """The robust combiner (Suh et al.'s AoBG; docs/estimators.md, "Robust combiner"): bias bound
+    ``γ ≥ 0`` (∞: inverse variance), confidence ``z ≥ 0``; ``messages`` as for :func:`inverse_variance`."""
     if messages not in MESSAGES:
         raise ValueError(f"messages must be one of {MESSAGES}, got {messages!r}")
     if not float(gamma) >= 0.0:

@@ -5,11 +5,11 @@ The reverse sweep asks its estimator's cost terms, at step t, for ``c_i`` (added
 built by :func:`plain_costs`, :func:`shaped_costs` and :func:`density_estimation_costs`:
 
 * the plain cost: ``c(x_i)`` and ``∇c(x_i)``;
-* Gaussian shaping (estimators.md §5): with the particle fit ``μ̂ = mean_i x_i``,
+* Gaussian shaping (thesis §3.3.2, Alg. 6): with the particle fit ``μ̂ = mean_i x_i``,
   ``Σ̂ = E[x xᵀ] − μ̂ μ̂ᵀ`` (1/P) and ``Ē = E_{N(μ̂, Σ̂)}[c]`` in closed form, the LR cost
   ``g_i = ∂Ē/∂μ̂ · m_i + ⟨∂Ē/∂Σ̂, v_i − 2 m_i μ̂ᵀ⟩`` (``m_i = x_i − μ̂``, ``v_i = x_i x_iᵀ − E[x xᵀ]``)
   and the RP cost gradient ``P·dĒ/dx_i = ∂Ē/∂μ̂ + 2 Sym(∂Ē/∂Σ̂) m_i``;
-* DEL (§6): with ``q = N(μ̂, Σ̂)`` (unbiased covariance) fitted pathwise,
+* DEL (thesis §3.3.1): with ``q = N(μ̂, Σ̂)`` (unbiased covariance) fitted pathwise,
   ``S = (1/P) Σ_j (G_j − b) log q(x_j)`` with the samples ``x_j`` held fixed, the cost
   gradient is ``P·∂S/∂x_i`` through the fit only.
 
@@ -39,7 +39,7 @@ def plain_terms(cost, x: jax.Array, c: jax.Array, *, gradient: bool):
 
 
 def particle_fit(x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """(μ̂, Σ̂, E[x xᵀ]) with Σ̂ = E[x xᵀ] − μ̂ μ̂ᵀ, all 1/P (estimators.md §5)."""
+    """(μ̂, Σ̂, E[x xᵀ]) with Σ̂ = E[x xᵀ] − μ̂ μ̂ᵀ, all 1/P (as thesis Alg. 6 fits them)."""
     P = x.shape[0]
     mu = jnp.mean(x, axis=0)
     second = x.T @ x / P
@@ -71,7 +71,7 @@ def gaussian_logpdf(x: jax.Array, mean: jax.Array, cov: jax.Array) -> jax.Array:
 
 
 def del_gradient(x: jax.Array, returns: jax.Array, baseline: jax.Array, jitter: float = 1e-12) -> jax.Array:
-    """DEL's per-particle cost gradient P·∂S/∂x_i (estimators.md §6)."""
+    """DEL's per-particle cost gradient P·∂S/∂x_i (the module docstring)."""
     P, D = x.shape
     advantage = jax.lax.stop_gradient(returns - baseline)
     samples = jax.lax.stop_gradient(x)
@@ -87,7 +87,7 @@ def del_gradient(x: jax.Array, returns: jax.Array, baseline: jax.Array, jitter: 
 
 @strategy
 class PlainCosts(Stateless):
-    """The particles' own costs ``c(x_i)`` and ``∇c(x_i)`` (estimators.md §1–§4)."""
+    """The particles' own costs ``c(x_i)`` and ``∇c(x_i)`` (RP, LR and TP)."""
 
     feeds_likelihood_ratio = True
 
@@ -102,7 +102,7 @@ class PlainCosts(Stateless):
 
 @strategy
 class ShapedCosts(Stateless):
-    """Gaussian shaping (estimators.md §5): ``g_i`` for the returns, ``P·dĒ/dx_i`` for the pathwise chain."""
+    """Gaussian shaping (thesis Alg. 6): ``g_i`` for the returns, ``P·dĒ/dx_i`` for the pathwise chain."""
 
     feeds_likelihood_ratio = True
 
@@ -117,7 +117,7 @@ class ShapedCosts(Stateless):
 
 @strategy
 class DensityEstimationCosts:
-    """DEL (estimators.md §6): the particles' own costs for the returns and the surrogate's
+    """DEL (thesis §3.3.1): the particles' own costs for the returns and the surrogate's
     ``P·∂S/∂x_i`` instead of ``∇c(x_i)``.
 
     ``baseline``: ``b_t`` of the surrogate, "previous" (the previous iteration's mean return, the
@@ -153,12 +153,12 @@ def plain_costs() -> PlainCosts:
 
 
 def shaped_costs() -> ShapedCosts:
-    """Cost terms of GTP and GLR: the Gaussian-shaped costs (estimators.md §5)."""
+    """Cost terms of GTP and GLR: the Gaussian-shaped costs (thesis §3.3.2)."""
     return ShapedCosts()
 
 
 def density_estimation_costs(baseline: str = "previous") -> DensityEstimationCosts:
-    """Cost terms of DEL (estimators.md §6) with the surrogate's baseline, "previous" or "none"."""
+    """Cost terms of DEL (thesis §3.3.1) with the surrogate's baseline, "previous" or "none"."""
     if baseline not in DEL_BASELINES:
         raise ValueError(f"DEL's baseline must be one of {DEL_BASELINES}, got {baseline!r}")
     return DensityEstimationCosts(baseline)

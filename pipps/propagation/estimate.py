@@ -42,8 +42,8 @@ def init_estimator_state(
     """Every piece's state before the first iteration.
 
     A piece with the "previous" baseline starts from one extra independent rollout made when the
-    optimizer starts (estimators.md §3), made only if a piece asks for it; ``key`` must be
-    independent of the estimate keys.
+    optimizer starts (the first iteration has no previous one), made only if a piece asks for it;
+    ``key`` must be independent of the estimate keys.
     """
     require_float64("pipps.propagation.init_estimator_state")
 

@@ -1,4 +1,4 @@
-"""Estimators: compositions of pieces (estimators.md §2–§9), and the registry of named ones.
+"""Estimators: compositions of pieces (docs/estimators.md), and the registry of named ones.
 
 An :class:`Estimator` is cost terms (:mod:`~pipps.propagation.cost_terms`: what each particle adds to
 the returns and to the pathwise chain), one or two gradient parts (:mod:`~pipps.propagation.parts`:
@@ -56,7 +56,8 @@ def _composition_problem(costs, parts, combiner, schedule) -> str | None:
             return f"a pathwise and an LR part need a combiner that weighs them (inverse_variance() or robust()), not {combiner.name!r}"
         return f"the {combiner.name!r} combiner weighs a pathwise against an LR part; a lone {kinds[0]} part takes single()"
     if LIKELIHOOD_RATIO in kinds and not costs.feeds_likelihood_ratio:
-        return "density-estimation cost terms replace the pathwise cost gradient (estimators.md §6): compose them with a lone pathwise part"
+        return ("density-estimation cost terms replace the pathwise cost gradient (DEL, thesis §3.3.1): "
+                "compose them with a lone pathwise part")
     return None
 
 
@@ -148,30 +149,30 @@ def _thesis_tp(costs):
 #: Every named estimator, in the order the CLI and the docs list them.
 ESTIMATORS: dict[str, NamedEstimator] = {e.name: e for e in (
     NamedEstimator("rp", "RP", (214, 39, 40),
-                   "reparameterization (pathwise) only (§2); with `RolloutConfig(resampling=\"gaussian\")` GR, on a "
+                   "reparameterization (pathwise) only; with `RolloutConfig(resampling=\"gaussian\")` GR, on a "
                    "fixed key RP_FS / GR_FS",
                    compose(plain_costs(), pathwise())),
-    NamedEstimator("lr", "BIW-LR", (44, 160, 44), "batch-importance-weighted LR (§3); the thesis' LR",
+    NamedEstimator("lr", "BIW-LR", (44, 160, 44), "batch-importance-weighted LR (thesis eq. 4.2); the thesis' LR",
                    compose(plain_costs(), biw_lr()), compose(plain_costs(), biw_lr("thesis"))),
-    NamedEstimator("lr_plain", "LR", (255, 127, 14), "plain LR with the leave-one-out baseline (§3; comparison, tests)",
+    NamedEstimator("lr_plain", "LR", (255, 127, 14), "plain LR with the leave-one-out baseline (comparison, tests)",
                    compose(plain_costs(), plain_lr())),
     NamedEstimator("tp", "TP", (31, 119, 180),
-                   "total propagation of RP and BIW-LR (§4, Alg. 5); with `model_variance=False` TP−σ_f, with "
+                   "total propagation of RP and BIW-LR (thesis Alg. 5); with `model_variance=False` TP−σ_f, with "
                    "`noise_multiplier=100` TP+σ_n",
                    compose(plain_costs(), pathwise(), biw_lr(), combiner=inverse_variance()), _thesis_tp(plain_costs())),
     NamedEstimator("tp_plain", "TP (plain LR)", (23, 190, 207),
-                   "total propagation of RP and plain LR (§3–§4; unbiased with the `\"previous\"` k_LR)",
+                   "total propagation of RP and plain LR (unbiased with the `\"previous\"` k_LR)",
                    compose(plain_costs(), pathwise(), plain_lr(), combiner=inverse_variance())),
     NamedEstimator("tpx", "TPX", (188, 189, 34),
                    "RP and BIW-LR combined at the action nodes: a weight per action coordinate and one for the state "
                    "paths (the idea of TPX, Parmas, Seno, Aoki 2023)",
                    compose(plain_costs(), pathwise(), biw_lr(), combiner=action_nodes())),
     NamedEstimator("gtp", "GTP", (148, 103, 189),
-                   "Gaussian-shaped total propagation (§5, Alg. 6); with `noise_multiplier=25` GTP+σ_n",
+                   "Gaussian-shaped total propagation (thesis §3.3.2, Alg. 6); with `noise_multiplier=25` GTP+σ_n",
                    compose(shaped_costs(), pathwise(), biw_lr(), combiner=inverse_variance()), _thesis_tp(shaped_costs())),
-    NamedEstimator("glr", "GLR", (140, 86, 75), "Gaussian-shaped LR (§5)",
+    NamedEstimator("glr", "GLR", (140, 86, 75), "Gaussian-shaped LR (thesis §3.3.2)",
                    compose(shaped_costs(), biw_lr()), compose(shaped_costs(), biw_lr("thesis"))),
-    NamedEstimator("del", "DEL", (127, 127, 127), "density-estimation LR (§6)",
+    NamedEstimator("del", "DEL", (127, 127, 127), "density-estimation LR (thesis §3.3.1)",
                    compose(density_estimation_costs(), pathwise())),
 )}
 
@@ -205,7 +206,7 @@ def _rebaselined(name: str, costs, parts: tuple, baseline: str):
     if any(isinstance(p, BiwLR) for p in parts):
         return costs, tuple(biw_lr(baseline) if isinstance(p, BiwLR) else p for p in parts)
     if any(isinstance(p, PlainLR) for p in parts):
-        raise ValueError(f"baseline: plain LR always uses the leave-one-out mean (estimators.md §3), so {name!r} takes none")
+        raise ValueError(f"baseline: plain LR always uses the leave-one-out mean, so {name!r} takes none")
     raise ValueError(f"baseline applies to BIW-LR or DEL, and {name!r} has neither")
 
 

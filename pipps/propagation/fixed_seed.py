@@ -1,4 +1,4 @@
-"""Fixed-seed (``_FS``, PEGASUS-style) policy optimization: RP_FS and GR_FS (estimators.md §1, §8).
+"""Fixed-seed (``_FS``, PEGASUS-style) policy optimization: RP_FS and GR_FS (thesis §4.5.1).
 
 With the particle noise drawn once from a fixed key, ``J(θ)`` is a deterministic, smooth function
 of the policy parameters, so it is minimised by the quasi-Newton method of

@@ -1,4 +1,4 @@
-"""Likelihood-ratio gradients in distribution-parameter space (estimators.md §3; thesis eq. 4.2–4.3).
+"""Likelihood-ratio gradients in distribution-parameter space (thesis eq. 4.2–4.3).
 
 At a step t the particles ``x_j`` were drawn from ``N(μ_j, diag(s_j²))``. The LR gradient
 with respect to each component's parameters ``ζ_i = (μ_i, s_i)`` is

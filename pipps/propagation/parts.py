@@ -1,13 +1,13 @@
-"""Gradient parts: each turns one step's particles into a ζ-cotangent γ_{i,t} (estimators.md §2–§4).
+"""Gradient parts: each turns one step's particles into a ζ-cotangent γ_{i,t} (thesis Alg. 5).
 
 A part is a strategy piece with a ``kind`` and ``zeta(state, inputs, config) -> (state, ZetaGrad)``:
 
-* :func:`pathwise` (RP, §2; step 2 of §4): ``γ^RP_i = a_i ∂x_{i,t}/∂ζ_{i,t}`` with
+* :func:`pathwise` (RP, the reparameterization part of Alg. 5): ``γ^RP_i = a_i ∂x_{i,t}/∂ζ_{i,t}`` with
   ``a_i = ∂G_i/∂x_{i,t} + ∂c_i/∂x_{i,t}`` — for ``x = μ + s ⊙ ε`` that is ``(a, a ⊙ ε)``, for
   Gaussian resampling the VJP of the resampling. It reads the carried x-cotangent, so the sweep
   pulls x-cotangents back only when a pathwise part is present.
-* :func:`biw_lr` (BIW-LR, §3, eq. 4.2–4.3) with its baseline, "previous", "thesis" or "none".
-* :func:`plain_lr` (§3): no batch weighting, the leave-one-out baseline.
+* :func:`biw_lr` (BIW-LR, thesis eq. 4.2–4.3) with its baseline, "previous", "thesis" or "none".
+* :func:`plain_lr`: no batch weighting, the leave-one-out baseline.
 
 The sweep carries every part's γ to θ through the same direct path and hands the per-particle
 θ-gradients to the combiner (:mod:`~pipps.propagation.combine`). Each is a
@@ -28,7 +28,7 @@ from pipps.propagation.strategy import strategy
 
 
 def rp_zeta(a: jax.Array, mean: jax.Array, std: jax.Array, eps: jax.Array, config: RolloutConfig) -> ZetaGrad:
-    """γ^RP = a ∂x/∂ζ: ``(a, a ⊙ ε)``, or the VJP of the Gaussian resampling (estimators.md §4 step 2, §7)."""
+    """γ^RP = a ∂x/∂ζ: ``(a, a ⊙ ε)``, or the VJP of the Gaussian resampling (GR, thesis §4.3.1)."""
     if config.resampling == "gaussian":
         _, vjp = jax.vjp(lambda m, s: gaussian_resample(m, s, eps, config.resample_jitter), mean, std)
         gm, gs = vjp(a)
@@ -38,7 +38,7 @@ def rp_zeta(a: jax.Array, mean: jax.Array, std: jax.Array, eps: jax.Array, confi
 
 @strategy
 class Pathwise(Stateless):
-    """The reparameterization part (estimators.md §2)."""
+    """The reparameterization part: backpropagation through the rollout, the noise ε held fixed."""
 
     kind = PATHWISE
 
@@ -48,7 +48,7 @@ class Pathwise(Stateless):
 
 @strategy
 class BiwLR:
-    """Batch-importance-weighted LR (estimators.md §3, eq. 4.2) with ``baseline`` (§3, eq. 4.3)."""
+    """Batch-importance-weighted LR (thesis eq. 4.2) with ``baseline`` ("thesis": eq. 4.3)."""
 
     baseline: str = "previous"
 
@@ -69,7 +69,7 @@ class BiwLR:
 
 @strategy
 class PlainLR(Stateless):
-    """LR without batch weighting, with the leave-one-out baseline (estimators.md §3)."""
+    """LR without batch weighting, with the leave-one-out baseline (exactly unbiased)."""
 
     kind = LIKELIHOOD_RATIO
 

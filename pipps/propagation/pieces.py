@@ -48,7 +48,7 @@ class InitContext(NamedTuple):
 
     steps: int  # T, the length of every state leaf's leading axis
     num_actions: int  # the action dimension (a weight per action coordinate needs it)
-    mean_returns: Callable[[], jax.Array]  # (T,) mean return-to-go of one extra independent rollout (estimators.md §3)
+    mean_returns: Callable[[], jax.Array]  # (T,) mean return-to-go of one extra independent rollout
 
 
 class EstimatorState(NamedTuple):
@@ -60,7 +60,7 @@ class EstimatorState(NamedTuple):
 
 
 class MeanReturn(NamedTuple):
-    """The state of a piece with the "previous" baseline (estimators.md §3, §6)."""
+    """The state of a piece with the "previous" baseline (BIW-LR, DEL)."""
 
     mean_return: jax.Array  # (T,) mean_i G_{i,t} of the previous iteration (first: of the extra rollout)
 

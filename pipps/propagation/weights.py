@@ -1,10 +1,10 @@
-"""Weight sources: where a two-part combiner's ``k_LR`` comes from (estimators.md §4 step 5).
+"""Weight sources: where a two-part combiner's ``k_LR`` comes from (thesis Alg. 5 takes this batch's).
 
 A weight source is a :class:`~pipps.propagation.pieces.WeightSource`. Given this batch's weight
 ``k_batch`` (the combiner's rule applied to this batch's variances) and the per-particle
 θ-gradients of the two parts, it returns the weight used: one per step, or one per particle.
 
-* ``"batch"`` (:class:`BatchWeight`): this batch's weight (the thesis, Alg. 5; biased, estimators.md §4);
+* ``"batch"`` (:class:`BatchWeight`): this batch's weight (the thesis, Alg. 5; biased, docs/estimator-bias.md);
 * ``"previous"`` (:class:`PreviousWeight`): the previous iteration's batch weight, this batch's on the
   first iteration (exactly unbiased); its state is that weight per step;
 * a number in [0, 1] (:class:`FixedWeight`, traced);
@@ -103,7 +103,7 @@ class _NoMemory:
 
 @strategy
 class BatchWeight(_NoMemory):
-    """k_LR from this batch's variances (the thesis, Alg. 5; biased, estimators.md §4)."""
+    """k_LR from this batch's variances (the thesis, Alg. 5; biased: the weight correlates with the parts it weighs)."""
 
     k_lr = "batch"
 
@@ -150,7 +150,7 @@ class _PreviousIteration:
 
 @strategy
 class PreviousWeight(_PreviousIteration):
-    """k_LR from the previous optimizer iteration's batch, this batch's on the first (estimators.md §4)."""
+    """k_LR from the previous optimizer iteration's batch, this batch's on the first (exactly unbiased after it)."""
 
     k_lr = "previous"
 
@@ -164,7 +164,7 @@ class GuardedWeight(_PreviousIteration):
     """The previous iteration's k_LR, but 1 (LR only) at a step where this batch's weight is at or
     above ``threshold`` — a batch whose pathwise spread is far beyond its LR spread (heavy tails).
 
-    Biased only through the switch (estimators.md, "Choosing k_LR"): its bias is
+    Biased only through the switch (docs/estimators.md, "Choosing k_LR"): its bias is
     ``E[(1 − k_prev)·1{switch}·(γ^LR − γ^RP)]``, measured, not bounded a priori.
     """
 

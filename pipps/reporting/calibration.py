@@ -1,10 +1,11 @@
-"""The unicycle's return threshold (experiments.md, "unicycle success").
+"""The unicycle's return threshold (docs/experiments.md, "The unicycle's success criterion").
 
 Success on the unicycle is judged on the final trial's evaluation rollouts: at least
-``upright_fraction`` of them stay upright. experiments.md also asks for "the documented return
-threshold that matches this": the τ for which "evaluated return < τ" agrees best with that
-criterion over learned policies. :func:`fit_return_threshold` finds it exactly (it is a
-one-dimensional classification with a step function, so every candidate τ is checked), and
+``upright_fraction`` of them stay upright. The thesis judges success by a return threshold, so we
+also document the return threshold that matches this criterion: the τ for which "evaluated
+return < τ" agrees best with that criterion over learned policies. :func:`fit_return_threshold`
+finds it exactly (it is a one-dimensional classification with a step function, so every
+candidate τ is checked), and
 ``experiments/calibrate_unicycle.py --results`` applies it to the learned trials of result files.
 """
 

@@ -1,4 +1,4 @@
-"""The success-rate tables: the thesis' (Tables 4.1–4.4, experiments.md), and one per task of your own.
+"""The success-rate tables: the thesis' (Tables 4.1–4.4 of thesis §4.5.4), and one per task of your own.
 
 Each table is a list of cells; a cell is a set of configuration values (task, cost, k, method)
 and the thesis' success rate. ``table_configs(table, seeds, preset)`` expands a table into the

@@ -1,4 +1,4 @@
-"""Run time against gradient error (issue 6, ``pipps bench``).
+"""Run time against gradient error (``pipps bench``).
 
 At a smooth and a chaotic point of the line ``θ + Δ·d`` through a policy snapshot, for each
 estimator and number of particles P:

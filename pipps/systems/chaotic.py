@@ -12,7 +12,7 @@ chaotic sea; at ``K = 2`` (the chaotic setting) its maximal Lyapunov exponent is
 step. Under the study's weak saturated policy (``|u| ≤ 0.2``) the closed noisy loop has a
 finite-time exponent (T = 30) of median ≈ 0.08 with a long upper tail (max ≈ 0.6), and the
 products of Jacobians that RP differentiates through are heavy-tailed: RP's gradient variance is
-10¹⁰–10¹¹, ten orders of magnitude above LR's (estimators.md §4; thesis §4.2). At ``K = 0.1`` (the
+10¹⁰–10¹¹, ten orders of magnitude above LR's (the curse of chaos, thesis §4.2). At ``K = 0.1`` (the
 smooth setting) the map is near-integrable (KAM circles; median λ ≈ 0.007) and RP has the lowest
 variance. :func:`finite_time_lyapunov` estimates λ per particle.
 

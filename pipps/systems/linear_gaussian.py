@@ -10,7 +10,7 @@ exact gradient ``jax.grad(exact_objective)``.
   zero epistemic variance. It offers the GP's two interfaces: per particle
   ``predict(z, variance) -> (mean, var or None)`` with ``noise_variance``, and for moment
   matching ``moments(mean_z, cov_z) -> GaussianMap`` (the exact linear map of the *latent*
-  ``Fz + f0``; like §5.4 it adds no noise).
+  ``Fz + f0``; like PILCO's GP at a Gaussian input it adds no noise).
 * :func:`make_linear_gaussian_task` — the :class:`~pipps.tasks.base.Problem` around it (no angles,
   every state component is a GP and a policy input; a planning problem only: there is no true
   system to simulate).

@@ -1,4 +1,4 @@
-"""The tasks: cart-pole swing-up/balancing, unicycle balancing, and tasks of your own (tasks.md §2–3).
+"""The tasks: cart-pole swing-up/balancing, unicycle balancing, and tasks of your own.
 
 A task is one record, a :class:`TaskSpec`: its physics, a :class:`Task` (the planning
 :class:`Problem`, ``task.problem``, and the true system, a :class:`Simulator` or a

@@ -29,7 +29,7 @@ also checks that its halves fit each other and the cost (``dt`` equal, the ODE, 
 read-only float64 copies and index sets as tuples of ``int``, so a record is never changed after
 it was checked.
 
-The state has four representations (tasks.md §0):
+The state has four representations (as in PILCO):
 
 * the simulator state ``s`` that the ODE integrates (``Simulator.sim_dim`` components);
 * the model state ``x = sim_to_model(s)`` that the GP predicts and the cost is defined on
@@ -37,7 +37,7 @@ The state has four representations (tasks.md §0):
 * the augmented model state ``x̃ = [x; sin x_a, cos x_a (a in angle_idx)]``;
 * the control ``u = u_max ⊙ sat(ũ)``.
 
-All index sets here are 0-based (tasks.md writes them 1-based).
+All index sets here are 0-based (PILCO's MATLAB code writes them 1-based).
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ class Cost(Protocol):
         ...
 
     def expected(self, mean: jax.Array, cov: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(E[c], Var[c]) for x ~ N(mean, cov) (tasks.md §5.6)."""
+        """(E[c], Var[c]) for x ~ N(mean, cov), moment-matched as PILCO does (docs/costs.md)."""
         ...
 
 
@@ -218,7 +218,7 @@ class Problem:
             _fail(own, "cost", f"must return a scalar for a model state of shape ({self.model_dim},), got shape {shape}")
 
     def augment(self, x: jax.Array) -> jax.Array:
-        """x̃ = [x; sin x_a, cos x_a] with each angle's pair in (sin, cos) order (tasks.md §0)."""
+        """x̃ = [x; sin x_a, cos x_a] with each angle's pair in (sin, cos) order."""
         if not self.angle_idx:
             return x
         a = x[..., jnp.asarray(self.angle_idx)]

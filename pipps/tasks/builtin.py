@@ -26,7 +26,7 @@ from pipps.tasks.base import Task
 from pipps.tasks.presets import DEFAULT_COST, PRESETS, TASK_COSTS, make_task
 from pipps.tasks.spec import PlotInfo, Success, TaskSpec, never_fell
 
-#: The quick preset's RBF centre box over the cart-pole's [x_c, v, ω, θ] (experiments.md "quick").
+#: The quick preset's RBF centre box over the cart-pole's [x_c, v, ω, θ] (docs/experiments.md "Presets").
 QUICK_CENTRE_LOW = (-1.0, -3.0, -8.0, -math.pi / 2)
 QUICK_CENTRE_HIGH = (1.0, 3.0, 8.0, 3 * math.pi / 2)
 QUICK_LOG_LAMBDA = (0.0, 2.0, 4.0, 2.0)

@@ -1,4 +1,4 @@
-"""PILCO cart-pole physics (tasks.md §2).
+"""PILCO cart-pole physics (``dynamics_cp.m``; docs/task-cartpole.md).
 
 State (simulator = model state, D = 4): ``s = [x_c, v, ω, θ]`` — cart position (m),
 cart velocity (m/s), pendulum angular velocity ω = θ̇ (rad/s), pendulum angle (rad).
@@ -18,7 +18,7 @@ import numpy as np
 
 
 class CartPoleParams(NamedTuple):
-    """Physical parameters (tasks.md §2). Defaults are the PILCO reference's.
+    """Physical parameters. Defaults are the PILCO reference's.
 
     ``b`` is viscous cart–ground friction; there is no pivot friction. The pole is a
     uniform rod of length ``l`` (centre of mass at l/2, inertia m l²/12 about it).
@@ -34,12 +34,12 @@ class CartPoleParams(NamedTuple):
 CARTPOLE_PARAMS = CartPoleParams()
 
 #: Observation-noise base standard deviations in state order [x_c, v, ω, θ].
-#: thesis (experiments.md "Resolved choices"): 0.01 m, 0.1 m/s, 10°/s, 1°.
+#: thesis (§4.5.2, reordered to ours): 0.01 m, 0.1 m/s, 10°/s, 1°.
 CARTPOLE_OBS_STD_THESIS = np.array([0.01, 0.1, 10.0 * np.pi / 180.0, np.pi / 180.0])
-#: PILCO (tasks.md §2): 0.01 on every component.
+#: PILCO (``settings_cp.m``): 0.01 on every component.
 CARTPOLE_OBS_STD_PILCO = np.full(4, 0.01)
 
-#: Start distributions (tasks.md §2; experiments.md): swing-up starts hanging at rest.
+#: Start distributions (PILCO's, which the thesis keeps): swing-up starts hanging at rest.
 CARTPOLE_SWINGUP_MEAN = np.zeros(4)
 #: Balancing (thesis "DEL" task): the thesis only says the pole starts upright; we take
 #: the swing-up distribution shifted to θ = π (cart centred, at rest), same covariance.
@@ -48,7 +48,7 @@ CARTPOLE_INIT_COV = 0.1**2 * np.eye(4)
 
 
 def cartpole_ode(s: jax.Array, u: jax.Array, params: CartPoleParams = CARTPOLE_PARAMS) -> jax.Array:
-    """ṡ for s = [x_c, v, ω, θ] and force u (tasks.md §2, "Equations of motion")."""
+    """ṡ for s = [x_c, v, ω, θ] and force u (docs/task-cartpole.md, "Physics")."""
     M, m, l, b, g = params
     _, v, w, th = s[0], s[1], s[2], s[3]
     f = jnp.reshape(u, ())
@@ -60,9 +60,9 @@ def cartpole_ode(s: jax.Array, u: jax.Array, params: CartPoleParams = CARTPOLE_P
 
 
 def cartpole_energy(s: jax.Array, params: CartPoleParams = CARTPOLE_PARAMS) -> jax.Array:
-    """Total mechanical energy E = ½(M+m)v² + ⅙ml²ω² + ½ml(vω − g)cos θ (tasks.md §2).
+    """Total mechanical energy E = ½(M+m)v² + ⅙ml²ω² + ½ml(vω − g)cos θ.
 
-    Conserved along ``cartpole_ode`` when b = 0 and u = 0 (tasks.md §7.2 item 4).
+    Conserved along ``cartpole_ode`` when b = 0 and u = 0 (a test of the physics).
     """
     M, m, l, _, g = params
     v, w, th = s[..., 1], s[..., 2], s[..., 3]
@@ -70,7 +70,7 @@ def cartpole_energy(s: jax.Array, params: CartPoleParams = CARTPOLE_PARAMS) -> j
 
 
 def cartpole_sim_to_model(s: jax.Array) -> jax.Array:
-    """The cart-pole's model state is its simulator state (tasks.md §2)."""
+    """The cart-pole's model state is its simulator state."""
     return s
 
 

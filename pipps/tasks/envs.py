@@ -1,6 +1,6 @@
-"""Gymnasium environments around a :class:`~pipps.tasks.base.Task` (tasks.md §1, true-system rollout).
+"""Gymnasium environments around a :class:`~pipps.tasks.base.Task`'s true system.
 
-One ``step`` is one control interval of tasks.md §1 step 2:
+One ``step`` is one control interval of a true-system rollout (as PILCO's ``rollout.m``):
 
 * the action is the control ``u`` itself (the policy saturates its own output); it must
   be finite, of shape ``(action_dim,)`` and inside ``[-u_max, u_max]``, otherwise
@@ -9,15 +9,15 @@ One ``step`` is one control interval of tasks.md §1 step 2:
   jitted once per env);
 * the observation is the true simulator state plus N(0, diag(obs_noise_std²)) noise,
   drawn from the env's ``np_random`` (k = 0 gives the true state exactly);
-* ``reward = −c(x(s_{t+1}))`` on the noise-free next model state (step 5);
+* ``reward = −c(x(s_{t+1}))`` on the noise-free next model state (for reporting);
 * ``info`` holds ``model_state`` (noise-free x(s_{t+1})), ``obs_model_state`` (the model
-  state computed from the noisy observation, tasks.md §1 step 2.1), ``cost`` and
+  state computed from the noisy observation), ``cost`` and
   ``fallen``;
 * ``truncated`` once ``horizon`` steps have been taken.
 
 **Termination (unicycle).** When s_{t+1} violates the constraint (the robot has fallen)
 the env still returns that transition, with ``terminated=True`` and
-``info["fallen"] = True``. tasks.md §1 step 2.4 discards this transition: a learner that
+``info["fallen"] = True``. PILCO's ``rollout.m`` discards this transition: a learner that
 collects GP training data must drop the transition flagged ``fallen`` (its observation,
 reward and cost are reported for inspection only). Stepping after ``terminated`` or
 ``truncated`` raises ``gymnasium.error.ResetNeeded``, as does stepping before ``reset``.
@@ -124,7 +124,7 @@ class PippsEnv(gymnasium.Env):
 
     # -- helpers ------------------------------------------------------------------------
     def _observe(self, s: np.ndarray) -> np.ndarray:
-        """o = s + ε, ε ~ N(0, diag(obs_noise_std²)) (tasks.md §1 step 2.1)."""
+        """o = s + ε, ε ~ N(0, diag(obs_noise_std²)), on the simulator state."""
         if not np.any(self._obs_std):
             return s.copy()
         return s + self._obs_std * self.np_random.standard_normal(s.shape)
@@ -144,7 +144,7 @@ class PippsEnv(gymnasium.Env):
 
     # -- gymnasium API ------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Sample s0 ~ N(init_mean, init_cov) and return (o0, info) (tasks.md §1 step 1)."""
+        """Sample s0 ~ N(init_mean, init_cov) and return (o0, info)."""
         super().reset(seed=seed)
         del options
         z = self.np_random.standard_normal(self._init_mean.shape)

@@ -1,28 +1,29 @@
-"""Zero-order-hold integration of the true system over one control interval (tasks.md §1 step 2.3).
+"""Zero-order-hold integration of the true system over one control interval.
 
 The reference integrates with MATLAB ``ode45`` at rtol = atol = 1e-12; any integrator
-that reproduces the one-step vectors of tasks.md §7.3 to about 1e-9 is acceptable, and
+that reproduces the reference one-step vectors (docs/task-cartpole.md, docs/task-unicycle.md,
+"Integrator and measured accuracy") to about 1e-9 is acceptable, and
 the true system is never differentiated. We use classic fourth-order Runge–Kutta with
 ``substeps`` equal sub-steps of ``dt / substeps`` (a fixed-size ``lax.fori_loop``), so
 the map is pure, jittable and vmappable, and its cost is fixed and known.
 
 Measured accuracy: max abs error of one step against scipy ``solve_ivp`` (DOP853,
-rtol = atol = 1e-12; it matches the §7.3 vectors to 5e-13) at the tasks.md §7.3 states,
+rtol = atol = 1e-12; it matches the reference vectors to 5e-13) at the reference states,
 float64, by ``substeps`` (columns):
 
 =========================================  =======  =======  =======  =======  =======  =======
 case                                       10       20       50       100      134      200
 =========================================  =======  =======  =======  =======  =======  =======
-cart-pole §7.3 s, u = 4, dt = 0.1          1.6e-07  9.8e-09  2.5e-10  1.6e-11  4.8e-12  9.5e-13
+cart-pole ref. s, u = 4, dt = 0.1          1.6e-07  9.8e-09  2.5e-10  1.6e-11  4.8e-12  9.5e-13
 cart-pole s = 0, u = 10, dt = 0.1          8.0e-07  4.6e-08  1.1e-09  6.8e-11  2.1e-11  4.1e-12
-unicycle §7.3 s, u, dt = 0.15 (pilco)      3.7e-06  2.4e-07  6.3e-09  4.0e-10  1.2e-10  2.4e-11
-unicycle §7.3 s, u, dt = 0.1 (thesis)      3.7e-07  2.4e-08  6.1e-10  3.7e-11  1.1e-11  1.3e-12
+unicycle ref. s, u, dt = 0.15 (pilco)      3.7e-06  2.4e-07  6.3e-09  4.0e-10  1.2e-10  2.4e-11
+unicycle ref. s, u, dt = 0.1 (thesis)      3.7e-07  2.4e-08  6.1e-10  3.7e-11  1.1e-11  1.3e-12
 =========================================  =======  =======  =======  =======  =======  =======
 
 The error falls as ``substeps⁻⁴``, as it should. The presets choose
 ``substeps = ceil(dt / h_max)`` with ``h_max`` = 1 ms for the cart-pole (100 sub-steps
 at dt = 0.1 s) and 0.75 ms for the unicycle (200 at dt = 0.15 s, 134 at dt = 0.1 s),
-so every §7.3 step is reproduced to 1e-10 or better (a 10× margin on the spec's 1e-9;
+so every reference step is reproduced to 1e-10 or better (a 10× margin on the 1e-9 required;
 the unicycle at dt = 0.15 s needs more than 100 sub-steps for that). Along random-action
 trajectories (one-step errors from the states visited, 10 rollouts each) the defaults
 give at most 6e-9 for the cart-pole (u ~ U[-10, 10], 400 steps) and 2e-10 for the
@@ -57,7 +58,7 @@ def integrate_interval(
     dt,
     substeps: int,
 ) -> jax.Array:
-    """State after one control interval ``dt`` of ṡ = ode(s, u) with u held constant (tasks.md §1).
+    """State after one control interval ``dt`` of ṡ = ode(s, u) with u held constant (zero-order hold).
 
     Classic RK4 with ``substeps`` equal sub-steps (a positive Python int: it fixes the
     program). Pure; ``vmap`` over ``s`` and ``u`` works as usual. It is jitted with

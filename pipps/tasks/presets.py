@@ -1,15 +1,15 @@
 """Task presets: ``make_task(name, preset, k, cost, **overrides) -> Task``, a planning problem and its simulator.
 
-Two presets (experiments.md "Resolved choices"):
+Two presets (docs/task-cartpole.md and docs/task-unicycle.md, "Presets"):
 
 * ``"thesis"`` — the PIPPS thesis protocol: 10 Hz control for both tasks, cart-pole
   H = 30 (3 s) with the thesis' per-component observation noise and raw 4-dim GP and
   policy inputs (no sin/cos), the Angle Cost; unicycle H = 20 (2 s).
-* ``"pilco"`` — the PILCO MATLAB defaults of tasks.md §2–3: cart-pole H = 40 with
+* ``"pilco"`` — the PILCO MATLAB defaults (``settings_cp.m``, ``settings_unicycle.m``): cart-pole H = 40 with
   sin/cos augmentation of θ and the tip cost; unicycle dt = 0.15 s, H = 67.
 
 Observation-noise standard deviations are ``√k`` times the preset's base std
-(experiments.md: variance k·σ_base²). Indices are 0-based (tasks.md writes them 1-based).
+(thesis §4.5.2: variance k·σ_base²). Indices are 0-based (PILCO's code writes them 1-based).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ DEFAULT_COST: dict[tuple[str, str], str] = {
 }
 
 #: Largest RK4 sub-step (s) per task: ``substeps = ceil(dt / h_max)`` unless overridden.
-#: Chosen from the accuracy study in ``pipps/tasks/integrate.py`` (§7.3 steps to < 1e-10).
+#: Chosen from the accuracy study in ``pipps/tasks/integrate.py`` (reference steps to < 1e-10).
 MAX_SUBSTEP: dict[str, float] = {"cartpole": 1e-3, "unicycle": 0.75e-3}
 
 # Fields that make_task sets from its own arguments, not from **overrides.
@@ -70,7 +70,7 @@ def substeps_for(dt: float, max_substep: float) -> int:
 
 
 def _cartpole_fields(name: str, preset: str) -> dict[str, Any]:
-    """Task fields of the cart-pole (tasks.md §2, §8; experiments.md "Resolved choices")."""
+    """Task fields of the cart-pole (docs/task-cartpole.md, "Presets")."""
     mean = cp.CARTPOLE_BALANCE_MEAN if name == "cartpole_balance" else cp.CARTPOLE_SWINGUP_MEAN
     fields: dict[str, Any] = dict(
         name=name,
@@ -87,10 +87,10 @@ def _cartpole_fields(name: str, preset: str) -> dict[str, Any]:
         ode=cp.cartpole_ode,
         sim_to_model=cp.cartpole_sim_to_model,
         fallen=None,
-        pilco_budget=(150, 30),  # PILCO's: 150 line searches of at most 30 evaluations (tasks.md §2)
+        pilco_budget=(150, 30),  # PILCO's: 150 line searches of at most 30 evaluations (``settings_cp.m``)
     )
     if preset == "thesis":
-        # raw state into GP and policy (tasks.md §8: the 104-parameter count)
+        # raw state into GP and policy (the thesis' 104-parameter count, §4.2.1: 20·4 + 20 + 4)
         fields.update(
             horizon=30,
             obs_noise_std=cp.CARTPOLE_OBS_STD_THESIS,
@@ -99,7 +99,7 @@ def _cartpole_fields(name: str, preset: str) -> dict[str, Any]:
             policy_input_idx=(0, 1, 2, 3),
         )
     else:
-        # x̃ = [x_c, v, ω, θ, sin θ, cos θ]; θ itself is not an input (tasks.md §2)
+        # x̃ = [x_c, v, ω, θ, sin θ, cos θ]; θ itself is not an input (as in PILCO)
         fields.update(
             horizon=40,
             obs_noise_std=cp.CARTPOLE_OBS_STD_PILCO,
@@ -111,7 +111,7 @@ def _cartpole_fields(name: str, preset: str) -> dict[str, Any]:
 
 
 def _unicycle_fields(preset: str) -> dict[str, Any]:
-    """Task fields of the unicycle (tasks.md §3.4–3.5; experiments.md "Resolved choices")."""
+    """Task fields of the unicycle (docs/task-unicycle.md, "Presets")."""
     dt, horizon = (0.1, 20) if preset == "thesis" else (0.15, 67)
     return dict(
         name="unicycle",
@@ -133,7 +133,7 @@ def _unicycle_fields(preset: str) -> dict[str, Any]:
         ode=uc.unicycle_ode,
         sim_to_model=uc.unicycle_sim_to_model,
         fallen=uc.unicycle_fallen,
-        pilco_budget=(-150, 20),  # PILCO's: 150 evaluations, at most 20 per line search (tasks.md §3.7)
+        pilco_budget=(-150, 20),  # PILCO's: 150 evaluations, at most 20 per line search (``settings_unicycle.m``)
     )
 
 

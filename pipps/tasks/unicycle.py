@@ -1,6 +1,6 @@
-"""PILCO unicycle physics (tasks.md §3).
+"""PILCO unicycle physics (``dynamics_unicycle.m``; docs/task-unicycle.md).
 
-Simulator (ODE) state, 12-dim (tasks.md §3.1), 0-based indices::
+Simulator (ODE) state, 12-dim (the ODE variables of PILCO's ``settings_unicycle.m``), 0-based indices::
 
     s = [θ̇, φ̇, ψ̇_w, ψ̇_f, ψ̇_t,  x, y,  θ, φ, ψ_w, ψ_f, ψ_t]
          0   1    2    3    4   5  6   7  8   9   10   11
@@ -9,7 +9,7 @@ Simulator (ODE) state, 12-dim (tasks.md §3.1), 0-based indices::
 (x, y) the world position of the wheel contact point (m). Controls ``u = [u_t, u_w]``:
 turntable and wheel motor torques (N m).
 
-Model state, 10-dim (tasks.md §3.1)::
+Model state, 10-dim (PILCO's GP state)::
 
     x = [θ̇, φ̇, ψ̇_w, ψ̇_f, ψ̇_t,  x_c, y_c,  θ, φ, ψ_f]
          0   1    2    3    4    5    6    7  8   9
@@ -27,7 +27,7 @@ import numpy as np
 
 
 class UnicycleParams(NamedTuple):
-    """Physical parameters (tasks.md §3.2): masses (kg), distances (m), inertias (kg m²)."""
+    """Physical parameters (PILCO's): masses (kg), distances (m), inertias (kg m²)."""
 
     mw: float = 1.0  # wheel mass
     rw: float = 0.225  # wheel radius
@@ -42,36 +42,36 @@ class UnicycleParams(NamedTuple):
     rt: float = 0.27  # frame centre of mass to turntable
     At: float = 1.3  # turntable inertia perpendicular to its axle
     Ct: float = 0.2  # turntable inertia about its axle
-    g: float = 9.82  # the reference code's value (tasks.md §9 item 6)
+    g: float = 9.82  # the reference code's value (its documentation says 9.81)
 
 
 UNICYCLE_PARAMS = UnicycleParams()
 
 SIM_DIM = 12
 MODEL_DIM = 10
-#: simulator indices of the model-state components other than (x_c, y_c) (tasks.md §3.1)
+#: simulator indices of the model-state components other than (x_c, y_c)
 _RATES = (0, 1, 2, 3, 4)
 _THETA, _PHI, _PSI_W, _PSI_F, _PSI_T = 7, 8, 9, 10, 11
 
-#: Observation-noise standard deviations on the simulator state (tasks.md §3.4):
+#: Observation-noise standard deviations on the simulator state (PILCO's):
 #: 0.01 on the five rates, 0.003 on x, y and the five angles.
 UNICYCLE_OBS_STD = np.concatenate([np.full(5, 0.01), np.full(7, 0.003)])
 
-#: Simulator start distribution (tasks.md §3.4): mean 0, independent components with
+#: Simulator start distribution (PILCO's): mean 0, independent components with
 #: std 0.02 on the rates, 0.1 m on x and y, 0.02 on the angles.
 UNICYCLE_INIT_MEAN = np.zeros(SIM_DIM)
 UNICYCLE_INIT_STD = np.concatenate([np.full(5, 0.02), np.full(2, 0.1), np.full(5, 0.02)])
 UNICYCLE_INIT_COV = np.diag(UNICYCLE_INIT_STD**2)
 
-#: Planning start distribution: the exact mean and covariance of x(s0) (tasks.md §3.4 and
-#: §9 item 7). x_c, y_c are rotations of (x, y) by the independent yaw, so their mean is 0,
+#: Planning start distribution: the exact mean and covariance of x(s0) (PILCO estimates it from
+#: 1000 Monte Carlo samples instead). x_c, y_c are rotations of (x, y) by the independent yaw, so their mean is 0,
 #: their variances stay 0.1², and every cross term vanishes.
 UNICYCLE_MODEL_INIT_MEAN = np.zeros(MODEL_DIM)
 UNICYCLE_MODEL_INIT_COV = np.diag(np.concatenate([np.full(5, 0.02**2), [0.01, 0.01], np.full(3, 0.02**2)]))
 
 
 def _mass_matrix_and_bias(s: jax.Array, u: jax.Array, p: UnicycleParams) -> tuple[jax.Array, jax.Array]:
-    """A(s) and b(s, u) of A q̈ + b = 0, q = (θ, φ, ψ_w, ψ_f, ψ_t) (tasks.md §3.3)."""
+    """A(s) and b(s, u) of A q̈ + b = 0, q = (θ, φ, ψ_w, ψ_f, ψ_t) (docs/task-unicycle.md, "Physics")."""
     dth, dph, dpw, dpf, dpt = s[0], s[1], s[2], s[3], s[4]
     th, pf = s[_THETA], s[_PSI_F]
     ut, uw = u[0], u[1]
@@ -172,7 +172,7 @@ def _mass_matrix_and_bias(s: jax.Array, u: jax.Array, p: UnicycleParams) -> tupl
 
 
 def unicycle_ode(s: jax.Array, u: jax.Array, params: UnicycleParams = UNICYCLE_PARAMS) -> jax.Array:
-    """ṡ for the 12-dim simulator state and torques u = [u_t, u_w] (tasks.md §3.3).
+    """ṡ for the 12-dim simulator state and torques u = [u_t, u_w].
 
     q̈ = −A(s)⁻¹ b(s, u) via ``jnp.linalg.solve``; ẋ = r_w ψ̇_w cos φ, ẏ = r_w ψ̇_w sin φ;
     each angle's derivative is its rate.
@@ -184,21 +184,21 @@ def unicycle_ode(s: jax.Array, u: jax.Array, params: UnicycleParams = UNICYCLE_P
 
 
 def _ground_velocity(s: jax.Array, p: UnicycleParams = UNICYCLE_PARAMS) -> tuple[jax.Array, jax.Array]:
-    """(ẋ, ẏ) = r_w ψ̇_w (cos φ, sin φ) (tasks.md §3.1, rolling without slip)."""
+    """(ẋ, ẏ) = r_w ψ̇_w (cos φ, sin φ) (rolling without slip)."""
     phi = s[..., _PHI]
     v = p.rw * s[..., 2]
     return v * jnp.cos(phi), v * jnp.sin(phi)
 
 
 def unicycle_origin_in_body_frame(s: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """(x_c, y_c) = (−(x cos φ + y sin φ), x sin φ − y cos φ) (tasks.md §3.1)."""
+    """(x_c, y_c) = (−(x cos φ + y sin φ), x sin φ − y cos φ)."""
     x, y, phi = s[..., 5], s[..., 6], s[..., _PHI]
     c, sn = jnp.cos(phi), jnp.sin(phi)
     return -(x * c + y * sn), x * sn - y * c
 
 
 def unicycle_derived(s: jax.Array, params: UnicycleParams = UNICYCLE_PARAMS) -> jax.Array:
-    """(ẋ, ẏ, ẋ_c, ẏ_c, x_c, y_c) at simulator state(s) s (tasks.md §3.1, §7.3).
+    """(ẋ, ẏ, ẋ_c, ẏ_c, x_c, y_c) at simulator state(s) s (checked against reference values).
 
     (ẋ_c, ẏ_c) is the time derivative of (x_c, y_c):
     ẋ_c = −(ẋ cos φ + ẏ sin φ) + φ̇ y_c and ẏ_c = ẋ sin φ − ẏ cos φ − φ̇ x_c.
@@ -213,7 +213,7 @@ def unicycle_derived(s: jax.Array, params: UnicycleParams = UNICYCLE_PARAMS) -> 
 
 
 def unicycle_full_state(s: jax.Array, params: UnicycleParams = UNICYCLE_PARAMS) -> jax.Array:
-    """The reference's 18-dim recorded state (tasks.md §3.1)::
+    """The reference's 18-dim recorded state (docs/task-unicycle.md, "States")::
 
     [ẋ, ẏ, ẋ_c, ẏ_c, θ̇, φ̇, ψ̇_w, ψ̇_f, ψ̇_t, x, y, x_c, y_c, θ, φ, ψ_w, ψ_f, ψ_t]
     """
@@ -222,7 +222,7 @@ def unicycle_full_state(s: jax.Array, params: UnicycleParams = UNICYCLE_PARAMS) 
 
 
 def unicycle_sim_to_model(s: jax.Array) -> jax.Array:
-    """10-dim model state [θ̇, φ̇, ψ̇_w, ψ̇_f, ψ̇_t, x_c, y_c, θ, φ, ψ_f] (tasks.md §3.1)."""
+    """10-dim model state [θ̇, φ̇, ψ̇_w, ψ̇_f, ψ̇_t, x_c, y_c, θ, φ, ψ_f] (PILCO's)."""
     xc, yc = unicycle_origin_in_body_frame(s)
     return jnp.concatenate(
         [s[..., 0:5], jnp.stack([xc, yc], axis=-1), s[..., _THETA : _PHI + 1], s[..., _PSI_F : _PSI_F + 1]],
@@ -231,6 +231,6 @@ def unicycle_sim_to_model(s: jax.Array) -> jax.Array:
 
 
 def unicycle_fallen(s: jax.Array) -> jax.Array:
-    """True when the robot has fallen: |θ| > π/2 or |ψ_f| > π/2 (tasks.md §3.4)."""
+    """True when the robot has fallen: |θ| > π/2 or |ψ_f| > π/2 (PILCO's fall condition)."""
     half_pi = jnp.pi / 2
     return (jnp.abs(s[..., _THETA]) > half_pi) | (jnp.abs(s[..., _PSI_F]) > half_pi)
