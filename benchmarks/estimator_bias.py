@@ -1,4 +1,4 @@
-"""Bias of the thesis' own estimator choices on the linear-Gaussian benchmark (estimators.md §3–§4).
+"""Bias of the thesis' own estimator choices on the linear-Gaussian benchmark (docs/estimator-bias.md).
 
 The benchmark is :func:`pipps.systems.reference_system` (3 states, 1 control, T = 10, linear
 policy, saturating cost) at two noise levels, where ``jax.grad(exact_objective)`` is the exact

@@ -1,4 +1,4 @@
-"""Seconds per value-and-gradient for each estimator (issue "estimator backward pass", Benchmark).
+"""Seconds per value-and-gradient for each estimator (docs/estimators.md, "Speed").
 
 Fixed protocol: the thesis-preset cart-pole (D = 4 states, raw 4-dim policy and GP inputs,
 Dz = 5), a full GP with N = 300 training points and fixed hyperparameters (the cost of a

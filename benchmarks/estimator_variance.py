@@ -1,4 +1,4 @@
-"""Gradient variance of RP, plain LR, BIW-LR and TP on the kicked rotor (issue "Variance").
+"""Gradient variance of RP, plain LR, BIW-LR and TP on the kicked rotor (docs/estimator-variance.md).
 
 Fixed protocol (:mod:`pipps.systems.chaotic`): the controlled standard map, ``"chaotic"``
 (K = 2) and ``"smooth"`` (K = 0.1), T = 30, the fixed saturated linear policy (4 parameters),

@@ -1,10 +1,11 @@
-"""Total propagation's k_LR rules side by side: variance, bias, MSE and time (issue 20).
+"""Total propagation's k_LR rules side by side: variance, bias, MSE and time
+(docs/estimator-variance.md, "Choosing k_LR").
 
 One table, one row per (cell, rule). Cells: the kicked rotor of :mod:`pipps.systems.chaotic`
 ("chaotic" K = 2 and "smooth" K = 0.1, T = 30; docs/estimator-variance.md) at each P, and the
 linear-Gaussian reference system (noise 0.3, saturating cost, T = 10) whose exact gradient is known.
 Rules: RP and BIW-LR (the parts), TP with k_LR "previous", "batch" (thesis),
-"leave_one_out" (the library default since issue 20), "split", "cross_fit", "guarded", the robust combiner (γ = 1, z = 2, batch), and
+"leave_one_out" (the library default), "split", "cross_fit", "guarded", the robust combiner (γ = 1, z = 2, batch), and
 "previous" and "leave_one_out" with ``messages="pathwise"`` (k mixes the contributions only; the
 pathwise message is passed back).
 
@@ -36,7 +37,7 @@ same run so that the Gflop-equivalents stay comparable.
     JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py --quick    # a smoke run
     JAX_PLATFORMS=cpu python benchmarks/k_lr_rules.py --cells --lg-bias 40000 --lg-particles 10 30   # the bias table only
 
-The action-node rules (``tpx``, issue 20 item 3) and the cells added with them — the two-action
+The action-node rules (``tpx``) and the cells added with them — the two-action
 linear-Gaussian system (``pipps.systems.linear_gaussian.two_action_reference_system``) and the
 cart-pole snapshot of the landscape study (``CARTPOLE_FILE`` trial 6, θ + Δ·d along PILCO's
 direction, Δ = 0 and 1.5; bias against BIW-LR on the same particles) — run on their own with

@@ -1,6 +1,6 @@
 """Before/after check of the learning loop: run tiny experiments with the pipps on PYTHONPATH, and
-compare two folders of their result files entry by entry (issue 19, item 3: one loop for the
-unbatched and the batched runs, typed trial records, ``restore``).
+compare two folders of their result files entry by entry (made for the change to one loop for the
+unbatched and the batched runs, typed trial records, ``restore``; docs/architecture.md).
 
     PYTHONPATH=/path/to/old/checkout python benchmarks/loop_reference.py run /tmp/before
     PYTHONPATH=. python benchmarks/loop_reference.py run /tmp/after

@@ -1,4 +1,4 @@
-"""Seconds per PILCO objective-and-gradient (moment matching, tasks.md §5) on the thesis cart-pole.
+"""Seconds per PILCO objective-and-gradient (moment matching, thesis Alg. 2) on the thesis cart-pole.
 
 Protocol (fixed): the thesis preset's cart-pole (raw 4-dim state, Angle Cost), H = 30, the thesis
 RBF policy with 50 centres, a GP dynamics model on N training pairs from random rollouts of the

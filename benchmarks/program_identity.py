@@ -5,7 +5,7 @@ a stored trial, compiles it, and writes the optimised HLO's instructions with th
 names source files and lines removed (``stack_frame_id``, ``metadata``) and the instruction numbers
 normalised. Two code versions that produce the same file run the same machine program, so neither
 is slower; the printed objective and first gradient entry show the numbers too. It runs on code
-before and after issue 19's change of ``estimate``'s return order, and before and after the pieces
+before and after the change of ``estimate``'s return order to ``(state, estimate)``, and before and after the pieces
 came to own their state (``propagation/config.py`` became ``estimators.py``, ``task=`` became
 ``problem=``, the state a tuple of the pieces' states; both start from a zero "previous" baseline).
 
@@ -40,7 +40,7 @@ except ImportError:  # before the pieces owned their state
 _estimate = importlib.import_module("pipps.propagation.estimate")
 estimate = _estimate.estimate
 
-if hasattr(pipps, "enable_float64"):  # after issue 19 item 4; before it, importing pipps enabled it
+if hasattr(pipps, "enable_float64"):  # since float64 became the caller's choice; before, importing pipps enabled it
     pipps.enable_float64()
 
 

@@ -1,5 +1,5 @@
 """The TP gradient on the certified low-rank variance against the exact variance, same random numbers
-(issue 17's criterion: the difference below 1 % of the gradient's own Monte Carlo spread).
+(the criterion we set: the difference below 1 % of the gradient's own Monte Carlo spread).
 
 For each snapshot and tolerance: R keys; per key the thesis-preset TP gradient (P = 300) on the exact
 model and on the low-rank model, from the same state and noise. Reported: the largest

@@ -1,4 +1,5 @@
-"""The rank a certified low-rank GP variance would need, from the spectrum of K (issue 17).
+"""The rank a certified low-rank GP variance would need, from the spectrum of K
+(docs/performance.md, "The certified low-rank variance, measured").
 
 For one output, K = U diag(λ) Uᵀ and A = (K + σ²I)⁻¹ = (I − U diag(λ/(λ+σ²)) Uᵀ)/σ². Keeping the r
 largest directions of the correction, the variance error at any input z is

@@ -1,5 +1,6 @@
 """Seconds per TP policy step on a real snapshot: exact GP variance against the variance off (−σ_f),
-with a float64 GEMM rate measured in the same process (docs/performance.md, "Levers measured for issue 17").
+with a float64 GEMM rate measured in the same process (docs/performance.md,
+"The certified low-rank variance, measured").
 
     taskset -c 1 python benchmarks/variance_share.py results/thesis/cartpole_swingup_angle_k1_tp_thesis_s1.h5 10 1e-2,1e-4,1e-6
     python benchmarks/variance_share.py results/thesis/cartpole_swingup_angle_k1_tp_thesis_s1.h5 10   # all cores

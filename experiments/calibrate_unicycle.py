@@ -1,7 +1,8 @@
 """Calibrate the unicycle's success criterion: which evaluated return means "stays upright".
 
-experiments.md: unicycle success is "the final trial's 30 evaluation rollouts stay upright in
-≥ 95 % of rollouts, and the documented return threshold that matches this". Learned policies are
+Our unicycle success criterion (docs/experiments.md, "The unicycle's success criterion"): the final
+trial's 30 evaluation rollouts stay upright in ≥ 95 % of rollouts, with a documented return threshold
+that matches this (the thesis judges success by a return threshold). Learned policies are
 expensive to produce, so this script probes the criterion with a family of linear saturated
 policies of graded quality around a linear-quadratic regulator:
 

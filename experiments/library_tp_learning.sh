@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 20's learning runs: the library's TP (since 222cbac: "previous" baseline, leave-one-out k_LR)
+# Learning runs of the library's TP (since 222cbac: "previous" baseline, leave-one-out k_LR)
 # on Table 4.1 (cart-pole swing-up, Angle Cost) at k = 1 and k = 9, thesis preset otherwise. The
 # thesis' rule (eq. 4.3 baseline, same-batch k_LR) is the thesis-preset TP cells of results/thesis.
 # One sweep per k, each pinned to its own core; resumable (complete files are skipped, a file with

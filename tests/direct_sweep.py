@@ -1,5 +1,5 @@
 """Pieces of the backward pass written as plain loops with NumPy, the references the sweep is checked
-against (estimators.md §2–§4): the particle forward pass, the BIW weights and the LR ζ-gradient.
+against (thesis Alg. 3 and 5, eq. 4.2): the particle forward pass, the BIW weights and the LR ζ-gradient.
 
 For models whose output noise does not depend on the input (the kicked rotor, the linear-Gaussian
 systems, ``model_variance=False``): ``ζ_{t+1} = (x_t + μ(z_t), s)`` with ``s = sqrt(noise variance)``.

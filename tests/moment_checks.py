@@ -1,5 +1,5 @@
 """The checks shared by tests/test_costs.py and tests/test_pilco.py: Monte Carlo sampling and
-z-scores of a scalar's mean and variance, and tasks.md §7.1's finite-difference gradient check.
+z-scores of a scalar's mean and variance, and PILCO's finite-difference gradient check (``checkgrad.m``).
 
 Monte Carlo: a fixed key, ``N_MC`` samples, tolerances of ``z_bound(n, FAMILY_ALPHA)`` standard
 errors (Bonferroni over the n comparisons a test makes). Finite differences: central, step
@@ -15,7 +15,7 @@ import numpy as np
 
 N_MC = 1_000_000
 FAMILY_ALPHA = 1e-3
-FD_STEP = 1e-4  # tasks.md §7.1
+FD_STEP = 1e-4  # PILCO's checkgrad.m
 FD_TOL = 1e-6
 
 
@@ -44,8 +44,8 @@ def tril_of(m):
 
 
 def checkgrad(f, p):
-    """tasks.md §7.1 for every output of ``f`` at ``p``: ``(d, g)``, with ``g`` the autodiff Jacobian
-    (outputs × parameters) and ``d`` per output.
+    """PILCO's checkgrad.m check for every output of ``f`` at ``p``: ``(d, g)``, with ``g`` the autodiff
+    Jacobian (outputs × parameters) and ``d`` per output.
 
     Outputs whose largest finite-difference derivative is below 1e-5 while d > 1e-3 are "not
     testable" (d is NaN there): the difference quotient is rounding noise.

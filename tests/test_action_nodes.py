@@ -1,4 +1,4 @@
-"""Total propagation at the action nodes, ``tpx`` (issue 20 item 3; docs/estimators.md, "Combination
+"""Total propagation at the action nodes, ``tpx`` (docs/estimators.md, "Combination
 at the action nodes"; pipps.propagation.combine.ActionNodes).
 
 Exact identities first, on a linear-Gaussian system with two actions (so that a weight per action
@@ -13,8 +13,8 @@ coordinate means something):
 
 Then statistics against the exact gradient, in the Bonferroni design of
 tests/test_estimators_unbiased.py: with "previous" weights and cross-fitted ``tpx`` is unbiased (the
-condition of estimators.md holds node by node); its bias with this batch's weights is measured and
-printed, not asserted (measured: |z| up to 4.4, 2.2 % of ‖∇J‖ at P = 30).
+condition (U) of docs/estimators.md, "Choosing k_LR", holds node by node); its bias with this
+batch's weights is measured and printed, not asserted (measured: |z| up to 4.4, 2.2 % of ‖∇J‖ at P = 30).
 """
 
 import direct_sweep

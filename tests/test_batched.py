@@ -1,4 +1,4 @@
-"""Many seeds at once (issue 7): the batched path equals the unbatched one, seed for seed.
+"""Many seeds at once (``--batched``): the batched path equals the unbatched one, seed for seed.
 
 The configuration is the tiny quick-preset experiment of test_experiments.py with a FITC
 threshold of 40 points, so the batch trains a full GP (30 points) and then FITC (60 points,
@@ -178,7 +178,7 @@ def test_sweep_batched_writes_each_seed_like_the_unbatched_sweep(unbatched, tmp_
 
 
 def test_a_batched_sweep_cut_part_way_resumes_as_a_batch(unbatched, tmp_path):
-    """A GPU job cut off after trial 1 (issue 18): the files hold trials 0-1; the rerun sweep resumes
+    """A GPU job cut off after trial 1 (as one was, on a lent GPU): the files hold trials 0-1; the rerun sweep resumes
     both seeds as one batch from trial 2 and ends where uninterrupted runs end."""
     from pipps.experiments.results import write_result
 

@@ -1,4 +1,4 @@
-"""Costs and Gaussian moments: §7.3 references, Monte Carlo, limits, autodiff vs finite differences.
+"""Costs and Gaussian moments: PILCO reference values, Monte Carlo, limits, autodiff vs finite differences.
 
 Monte Carlo checks use a fixed key, 10⁶ samples and a tolerance of ``b`` standard errors,
 each standard error estimated from the same samples and ``b`` the two-sided normal
@@ -69,7 +69,7 @@ def cost_point(name, rng):
     return mean, random_gaussian(rng, 10, 0.0, 0.3)[1]
 
 
-# -- §7.3 reference values -------------------------------------------------------------------
+# -- reference values (transcribed from PILCO's code) ----------------------------------------------
 @pytest.mark.parametrize(
     "x, value",
     [([0.2, 0.0, 0.0, 2.5], 0.874189814022), ([0.0, 0.0, 0.0, 0.0], 0.999664537372),
@@ -88,7 +88,7 @@ def test_tip_cost_moment_matched_reference():
 
 
 def test_tip_cost_reference_monte_carlo_gap():
-    """tasks.md §7.3: the exact E[c], Var[c] at the same Gaussian are about 0.3789 and 0.0959.
+    """Reference values: the exact E[c], Var[c] at the same Gaussian are about 0.3789 and 0.0959.
 
     The 4-digit values allow ±5e-5 rounding on top of b standard errors.
     """
@@ -168,7 +168,7 @@ def test_cost_rejects_inconsistent_shapes():
         SaturatingCost(W=np.triu(np.ones((3, 3))), target=np.zeros(3))
 
 
-# -- §5.1 trig augmentation -----------------------------------------------------------------------
+# -- trig augmentation (PILCO's gTrig.m) -----------------------------------------------------------
 TRIG_CASES = [(1, (0,)), (3, (0, 2)), (4, (3, 1, 0)), (6, (1, 2, 4, 5))]
 
 
@@ -277,7 +277,7 @@ def test_trig_augment_gradients_match_finite_differences(case):
     assert_fd(d, f"trig_augment case {case}")
 
 
-# -- §5.6 expected saturating cost -------------------------------------------------------------
+# -- expected saturating cost (PILCO's lossSat.m) --------------------------------------------------
 def feature_gaussian(name, rng, rank=None):
     """A random Gaussian over the cost's feature space φ, centred near the target."""
     cost = COSTS[name]()

@@ -1,4 +1,4 @@
-"""Estimators as compositions of pieces (pipps.propagation.estimators; estimators.md §2–§9).
+"""Estimators as compositions of pieces (pipps.propagation.estimators; docs/estimators.md).
 
 * every named estimator, thesis variant and override is the one-line composition it claims to be;
 * each piece owns its state: the estimator's state is the tuple of its pieces' states, and only the

@@ -1,4 +1,4 @@
-"""Exact identities of the custom backward pass (estimators.md §2–§7; style.md "exact identities first").
+"""Exact identities of the custom backward pass (thesis Alg. 3–6; exact identities are tested first).
 
 * RP through the sweep equals ``jax.grad`` of the reparameterized objective for the same noise,
   for the plain, −σ_f, +σ_n and GR rollouts, full GP and FITC-shaped posteriors alike;
@@ -107,7 +107,7 @@ def test_gtp_with_k_fixed_reduces_to_shaped_rp_and_glr(setup):
 
 
 def test_del_gradient_equals_autodiff_of_its_surrogate(setup):
-    """DEL = ∇θ Σ_t (1/P) Σ_i (G_i − b_t) log q_t(x_i) with x_i and G held fixed (estimators.md §6)."""
+    """DEL = ∇θ Σ_t (1/P) Σ_i (G_i − b_t) log q_t(x_i) with x_i and G held fixed (DEL, thesis §3.3.1)."""
     task, post, pol = setup
     cfg = RolloutConfig(num_particles=P)
     est = estimator("del", baseline="none")

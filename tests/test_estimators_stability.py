@@ -1,4 +1,4 @@
-"""Numerical stability of the estimators and the update step (issue: "no NaN or Inf reaches θ").
+"""Numerical stability of the estimators and the update step (the requirement: "no NaN or Inf reaches θ").
 
 Each case builds a model that provokes one failure mode and checks (a) what the estimator
 does is the documented guard, not an accident, and (b) the policy and the optimizer state stay

@@ -1,4 +1,4 @@
-"""Statistical tests of the gradient estimators against an exact gradient (estimators.md §2–§4).
+"""Statistical tests of the gradient estimators against an exact gradient (docs/estimator-bias.md).
 
 On the linear-Gaussian reference system (:func:`pipps.systems.reference_system`: linear dynamics,
 linear unsaturated policy, Gaussian noise, T = 10) the particle objective's exact gradient is
@@ -261,7 +261,7 @@ class StateDependentNoiseModel:
 
 
 def _relative_difference(a: np.ndarray, b: np.ndarray) -> float:
-    """tasks.md §7.1: d = ‖a − b‖ / ‖a + b‖."""
+    """PILCO's checkgrad.m metric: d = ‖a − b‖ / ‖a + b‖."""
     return float(np.linalg.norm(a - b) / np.linalg.norm(a + b))
 
 

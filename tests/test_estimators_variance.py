@@ -1,4 +1,4 @@
-"""Variance of the gradient estimators on a chaotic system (issue "Variance"; estimators.md §3–§4).
+"""Variance of the gradient estimators on a chaotic system (docs/estimator-variance.md).
 
 System: the controlled kicked rotor (Chirikov standard map) of :mod:`pipps.systems.chaotic`,
 ``"chaotic"`` (K = 2, T = 30: RP's variance ~10¹⁰–10¹¹) and ``"smooth"`` (K = 0.1, T = 30).
@@ -7,7 +7,7 @@ For each P, R independent replicates of every estimator on common random numbers
 independent extra rollout, TP its "previous" k_LR from an independent earlier estimate). The
 variance of an estimator is the trace of the covariance of its R estimates.
 
-Claims (the issue; estimators.md §3–§4; thesis Fig. 4.13):
+Claims (thesis §4.4.1, Fig. 4.13, and that TP should do no worse than its parts):
 
 * BIW-LR's variance is below plain LR's — asserted as *significantly* below;
 * TP's variance is at most ``min(RP, BIW-LR)`` up to sampling error — asserted as *not
@@ -61,8 +61,8 @@ ESTIMATORS = {
     "rp": estimator("rp"),
     "lr_plain": estimator("lr_plain"),
     "lr": estimator("lr"),  # BIW-LR, "previous" baseline
-    "tp": estimator("tp", k_lr="previous"),  # the library default until issue 20 (now leave-one-out)
-    "tp_batch": estimator("tp", k_lr="batch"),  # the thesis' k_LR (biased, estimators.md §4)
+    "tp": estimator("tp", k_lr="previous"),  # the library default before leave-one-out
+    "tp_batch": estimator("tp", k_lr="batch"),  # the thesis' k_LR (biased, docs/estimator-bias.md)
 }
 
 TP_XFAIL = (
@@ -139,7 +139,7 @@ def test_kicked_rotor_rollout_is_the_controlled_standard_map():
 
 
 def _direct_tp(task, model, policy, noise, k, weighting, baseline):
-    """Alg. 5 / estimators.md §4 written as plain loops over t and i, for a constant k_LR."""
+    """Thesis Alg. 5 written as plain loops over t and i, for a constant k_LR."""
     f = direct_sweep.forward(task, model, policy, noise)
     dzeta_dx, dzeta_dth, dcost = direct_sweep.through_policy(task, f)
     P, T, D = noise.x0.shape[0], noise.eps.shape[0], task.model_dim
@@ -164,7 +164,7 @@ def _direct_tp(task, model, policy, noise, k, weighting, baseline):
 @pytest.mark.parametrize("weighting", ["plain", "biw"])
 def test_tp_with_an_intermediate_constant_k_matches_a_direct_loop(weighting):
     """The variance findings are about Alg. 5 itself, not the sweep: for 0 < k < 1 (which the
-    exactness tests do not cover) the sweep equals a direct loop of estimators.md §4."""
+    exactness tests do not cover) the sweep equals a direct loop of Alg. 5."""
     task, model, policy = kicked_rotor_system("chaotic", horizon=4)
     cfg = RolloutConfig(num_particles=5, model_variance=False)
     est = estimator("tp", weighting=weighting, k_lr=0.3)
@@ -218,7 +218,7 @@ def _xfail_cells(reason_chaotic, reason_smooth):
 
 @pytest.mark.parametrize("setting, P", _xfail_cells(TP_XFAIL, SMOOTH_XFAIL))
 def test_tp_variance_at_most_min_of_rp_and_biw_lr(setting, P):
-    """The library's TP (k_LR from the previous iteration): the issue's claim."""
+    """The library's TP (k_LR from the previous iteration): the claim above."""
     assert_tp_at_most_min(replicates(setting, P), "tp")
 
 

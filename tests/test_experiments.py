@@ -1,4 +1,4 @@
-"""The learning loop, HDF5 results, sweeps, tables and the CLI (issue: learning loop and experiment CLI).
+"""The learning loop, HDF5 results, sweeps, tables and the CLI (docs/experiments.md).
 
 The tiny experiments here use the quick preset shrunk further (a few particles, policy steps and
 rollouts): they test the plumbing exactly — determinism, resumption, the schema, failure
@@ -90,7 +90,8 @@ def test_bad_preset_and_task_are_named():
 
 
 def test_thesis_preset_is_the_thesis_protocol():
-    """experiments.md: 1 + 15 trials / 5 + 30, P = 300, 600 evaluations, α = 5e-4, γ = 0.9, 50 centres, 30 evals."""
+    """The thesis preset (docs/experiments.md, "Presets"): 1 + 15 trials / 5 + 30, P = 300, 600 evaluations,
+    α = 5e-4, γ = 0.9, 50 centres, 30 evals."""
     c = resolve_config("thesis", "cartpole_swingup")
     assert (c.num_random, c.num_learned, c.num_particles, c.policy_evals) == (1, 15, 300, 600)
     assert (c.learning_rate, c.momentum, c.num_basis, c.eval_rollouts) == (5e-4, 0.9, 50, 30)
@@ -195,7 +196,7 @@ def test_seed_rows_list_each_counted_seed_in_order_with_both_counts():
 
 
 def test_a_comparison_by_a_setting_counts_each_value_apart_with_the_difference():
-    """pipps table --by (issue 20: the library's TP rule next to the thesis'): the groups follow the
+    """pipps table --by (e.g. the library's TP rule next to the thesis'): the groups follow the
     stored setting, a result departing from the preset only there counts without --custom, and the
     difference and p are those of the two groups' counts."""
     from scipy.stats import binomtest, mannwhitneyu, wilcoxon

@@ -1,4 +1,4 @@
-"""Full-GP dynamics model (tasks.md §4): prediction, objective, training, guards, errors.
+"""Full-GP dynamics model (docs/gp.md): prediction, objective, training, guards, errors.
 
 Reference values come from dense NumPy/SciPy evaluations written independently of the library.
 FITC has its own file (test_gp_fitc.py).
@@ -51,7 +51,7 @@ def np_predict(x, y, z, ell, sf, sn):
 
 
 def np_objective(psi, x, y, log_s, p=30, ls_curb=100.0, snr_curb=1000.0):
-    """tasks.md §4 L_a written out directly (slogdet + solve, not Cholesky)."""
+    """PILCO's penalised objective L_a (docs/gp.md) written out directly (slogdet + solve, not Cholesky)."""
     ell, sf, sn = np.exp(psi[:-2]), np.exp(psi[-2]), np.exp(psi[-1])
     ky = np_kernel(x, x, ell, sf) + sn**2 * np.eye(len(x))
     nll = 0.5 * y @ np.linalg.solve(ky, y) + 0.5 * np.linalg.slogdet(ky)[1] + 0.5 * len(x) * np.log(2 * np.pi)
@@ -165,7 +165,7 @@ def test_objective_equals_direct_numpy_and_ignores_padding(toy):
 
 
 def test_objective_gradient_matches_central_differences(toy):
-    """tasks.md §7.1/7.2: central differences, step 1e-4, d = ‖g_fd − g‖/‖g_fd + g‖."""
+    """PILCO's checkgrad.m: central differences, step 1e-4, d = ‖g_fd − g‖/‖g_fd + g‖."""
     log_s, _ = input_log_std(toy, SMALL)
     padded = with_garbage_padding(toy, np.random.default_rng(4), 9)
     for data in (toy, padded):

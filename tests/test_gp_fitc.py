@@ -1,4 +1,4 @@
-"""Sparse FITC GP (tasks.md §4): objective and posterior against dense formulas, the X_u = X
+"""Sparse FITC GP (docs/gp.md, "Sparse FITC"): objective and posterior against dense formulas, the X_u = X
 limit, training, warm start, and the switch at the threshold."""
 
 import math

@@ -1,4 +1,4 @@
-"""Importing pipps has no side effect on the process (issue 19, item 4).
+"""Importing pipps has no side effect on the process (docs/architecture.md, "Layers and imports").
 
 Each check runs in a fresh interpreter, without this session's conftest, so JAX's 64-bit mode is
 off there unless the code under test switches it on: ``import pipps`` must not import JAX or

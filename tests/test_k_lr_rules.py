@@ -1,4 +1,4 @@
-"""The k_LR rules of issue 20: leave-one-out, split, cross-fit and guarded (docs/estimators.md,
+"""Total propagation's k_LR rules: leave-one-out, split, cross-fit and guarded (docs/estimators.md,
 "Choosing k_LR"; numbers in docs/estimator-variance.md).
 
 Exact identities first:
@@ -9,7 +9,7 @@ Exact identities first:
 * a per-particle weight that is the same for every particle gives bit for bit the scalar weight's
   combination (the (P, 1) path of ``mix`` is the scalar path);
 * leave-one-out and split weights through the whole sweep (gradients and messages λ) equal a
-  direct loop of estimators.md §4 with NumPy variances over the other particles (the batch weight
+  direct loop of thesis Alg. 5 with NumPy variances over the other particles (the batch weight
   misses that loop by 4 %, so the comparison can fail);
 * the guarded source is "previous" below its threshold and LR at or above it;
 * the cross-fit is what it says: each half's contributions equal a separate sweep of that half with
@@ -133,7 +133,7 @@ def test_guarded_is_previous_below_its_threshold_and_lr_above():
     assert estimator("tp", k_lr="guarded").cold_start and not estimator("tp", k_lr="leave_one_out").cold_start
 
 
-# -- a weight per particle, through the whole sweep: a direct loop of estimators.md §4 ------------------
+# -- a weight per particle, through the whole sweep: a direct loop of Alg. 5 ------------------
 
 
 def _inverse_variance(v_rp, v_lr):
@@ -182,8 +182,8 @@ def _direct_tp_per_particle(task, model, policy, noise, others, baseline, pathwi
     [("leave_one_out", _others_loo, "mixed"), ("split", _others_split, "mixed"), ("leave_one_out", _others_loo, "pathwise")],
 )
 def test_a_weight_per_particle_matches_a_direct_loop_through_the_messages(rule, others, messages):
-    """Particle i's weight enters its gradient and the message λ_i it passes back (estimators.md §4,
-    steps 6–7), or only its gradient with ``messages="pathwise"``; the sweep equals plain loops with
+    """Particle i's weight enters its gradient and the message λ_i it passes back (Alg. 5's
+    last two steps), or only its gradient with ``messages="pathwise"``; the sweep equals plain loops with
     NumPy variances over the other particles."""
     task, model, policy = kicked_rotor_system("chaotic", horizon=4)
     cfg = RolloutConfig(num_particles=6, model_variance=False)

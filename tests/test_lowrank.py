@@ -1,4 +1,4 @@
-"""The certified low-rank GP variance (pipps.gp.lowrank, issue 17): the bound holds at every input,
+"""The certified low-rank GP variance (pipps.gp.lowrank): the bound holds at every input,
 the form is exact at full rank, and the default (variance_tol = 0) leaves the exact path alone."""
 
 from __future__ import annotations

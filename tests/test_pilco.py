@@ -1,4 +1,4 @@
-"""PILCO moment matching (tasks.md §5, §7): Monte Carlo, finite differences, exact systems, limits, stability.
+"""PILCO moment matching (docs/pilco.md): Monte Carlo, finite differences, exact systems, limits, stability.
 
 Monte Carlo checks use a fixed key, 10⁶ samples and a tolerance of ``b`` standard errors, each
 standard error estimated from the same samples and ``b`` the two-sided normal quantile at a
@@ -8,7 +8,7 @@ through Stein's identity ``C = E[Σ⁻¹(v − μ) (y − E y)ᵀ]``. For the GP
 function too (``f = m(z) + √var_f(z) ξ``), so the model-uncertainty term is part of what is
 compared; ``test_gp_monte_carlo_has_power`` shows the check rejects its omission.
 
-Finite differences follow tasks.md §7.1 (central, step 1e-4, ``d = ‖g_fd − g‖/‖g_fd + g‖``,
+Finite differences follow PILCO's checkgrad.m (central, step 1e-4, ``d = ‖g_fd − g‖/‖g_fd + g‖``,
 covariances through the lower triangle with symmetric perturbations; required ``d < 1e-6``).
 """
 
@@ -165,10 +165,10 @@ def sample_latent(post, z, seed):
 
 
 # ================================================================================================
-# §5.3 saturation
+# saturation (gSat.m)
 # ================================================================================================
 def test_saturation_reference_values():
-    """tasks.md §7.3: ũ ~ N(0.5, 0.2), ū = 10."""
+    """Reference values (transcribed from PILCO's code): ũ ~ N(0.5, 0.2), ū = 10."""
     g = saturation_jit(jnp.array([0.5]), jnp.array([[0.2]]), jnp.array([10.0]))
     assert float(g.M[0]) == pytest.approx(5.387213369646, abs=1e-11)
     assert float(g.S[0, 0]) == pytest.approx(18.417252921575, abs=1e-11)
@@ -234,7 +234,7 @@ def test_saturation_gradients_match_finite_differences():
 
 
 # ================================================================================================
-# §5.2 controllers
+# controllers (conlin.m, congp.m)
 # ================================================================================================
 def make_policies(D, F, seed):
     """An RBFPolicy, a PilcoRBFPolicy and saturated/unsaturated linear policies on D inputs."""
@@ -273,7 +273,7 @@ def test_controller_against_monte_carlo(kind, D, F):
 
 @pytest.mark.parametrize("kind", ["rbf", "pilco_rbf"])
 def test_rbf_controller_at_zero_covariance(kind):
-    """Σ = 0: M = π̃(v), S = 1e-6·I exactly (the §5.2 jitter, no trace term), C = ∇π̃(v)ᵀ."""
+    """Σ = 0: M = π̃(v), S = 1e-6·I exactly (PILCO's jitter, no trace term), C = ∇π̃(v)ᵀ."""
     policy = make_policies(3, 2, seed=7)[kind]
     v = jnp.array([0.2, -0.4, 0.7])
 
@@ -308,7 +308,7 @@ def test_controller_gradients_match_finite_differences(kind):
 
 
 # ================================================================================================
-# §5.4 GP at a Gaussian input
+# GP at a Gaussian input (gp0d.m, gp1d.m)
 # ================================================================================================
 GP_CASES = [(1, 1, "full"), (5, 3, "full"), (4, 2, "fitc")]
 
@@ -411,12 +411,12 @@ def test_gp_moments_gradients_match_finite_differences(kind):
 
 
 # ================================================================================================
-# §5.5 one propagation step and the objective
+# one propagation step (propagated.m) and the objective
 # ================================================================================================
 @functools.lru_cache(maxsize=None)
 def gp_step_case():
     """Linear unsaturated policy, no angles, GP dynamics: z = [x; Wx + b] is exactly Gaussian, so the
-    §5.5 assembly (cross-covariances by the §0 rule) must match MC of the true next state exactly."""
+    step's assembly (cross-covariances by the Gaussian-map rule) must match MC of the true next state exactly."""
     task = make_linear_gaussian_task(3, 1)
     post = random_gp(41, 4, 3, "full")
     policy = LinearPolicy(jnp.array([[0.5, -0.3, 0.8]]), jnp.array([0.2]), (10.0,), saturated=False)
@@ -685,7 +685,7 @@ def test_linear_gaussian_model_is_a_pytree_for_vmap():
 def test_zero_covariance_step_is_the_deterministic_gp_step(preset, monkeypatch):
     """Σ → 0: μ' = x + m(z(x, π(x))) and Σ' = diag(var_f(z)) (the model uncertainty at that point).
 
-    The RBF controller's 1e-6 second-moment jitter (§5.2) is switched off here (a fresh jit, so no
+    The RBF controller's 1e-6 second-moment jitter is switched off here (a fresh jit, so no
     cached program sees the patch): with it the control keeps a variance of 1e-6 even at Σ = 0
     (checked in test_rbf_controller_at_zero_covariance). The well-conditioned posterior keeps the
     rounding of S = E[ffᵀ] − MMᵀ at 1e-15 (the trained one's |β| ~ 1e3 leaves ~1e-11).

@@ -59,7 +59,7 @@ def test_pilco_rbf_beta_is_regularised_solve_and_count():
     mean = np.array([0, 0, 0, 0, np.exp(-0.005)])
     cov = np.diag([0.01, 0.01, 0.01, 0.0099007, 4.9503e-5])
     pol = init_pilco_rbf_policy(key, 10, mean, cov, 10.0)
-    # tasks.md §2: 10·5 centres + 10 pseudo-targets + 5 log ℓ (σ_f, σ_π fixed, not parameters)
+    # PILCO's settings_cp.m: 10·5 centres + 10 pseudo-targets + 5 log ℓ (σ_f, σ_π fixed, not parameters)
     assert num_parameters(pol) == 65
     np.testing.assert_allclose(np.exp(np.asarray(pol.log_lengthscale[0])), [1, 1, 1, 0.7, 0.7])
     C = np.asarray(pol.centres)
@@ -127,7 +127,7 @@ def test_parameter_gradient_matches_central_differences(which):
     g = np.asarray(jax.grad(f)(flat))
     h = 1e-4
     fd = np.array([(f(flat.at[i].add(h)) - f(flat.at[i].add(-h))) / (2 * h) for i in range(flat.size)])
-    d = np.linalg.norm(fd - g) / np.linalg.norm(fd + g)  # tasks.md §7.1 metric
+    d = np.linalg.norm(fd - g) / np.linalg.norm(fd + g)  # PILCO's checkgrad.m metric
     assert d < 1e-6
 
 

@@ -1,4 +1,4 @@
-"""The quasi-Newton minimiser (tasks.md §6): convergence, exact budgets, NaN/Inf and failed line searches.
+"""The quasi-Newton minimiser (minimize.m semantics): convergence, exact budgets, NaN/Inf and failed line searches.
 
 Evaluations are counted independently of the optimiser's own bookkeeping with a host callback
 inside the objective, and every evaluated point is logged, so "the best point" and "the budget"

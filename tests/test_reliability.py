@@ -1,4 +1,4 @@
-"""Nothing a user types loses or mislabels a result (docs/reliability.md, issue 16).
+"""Nothing a user types loses or mislabels a result (docs/reliability.md).
 
 Most tests replace the learning loop by a fake that writes small, valid results in milliseconds
 (``fake_loop``): what is under test is the bookkeeping around it (names, presets, locks, overwrite
@@ -448,7 +448,7 @@ def _one_file_per_writer(files) -> list:
 
 @pytest.mark.parametrize("every_file", [pytest.param(True, marks=pytest.mark.slow), False])
 def test_committed_results_restore_the_loops_state_and_write_back_unchanged(tmp_path, every_file):
-    """Old files still read (issue 19): committed results read into typed records, and restore()
+    """Old files still read (after the loop's refactors): committed results read into typed records, and restore()
     rebuilds the loop's state after its trials: the last trial's policy and GP, and data of one
     training pair per valid transition, the count each learned trial's GP records it was trained on
     (so the data restore rebuilds at a trial is the data that trial used). Written back by this

@@ -1,4 +1,4 @@
-"""True-system rollouts (tasks.md §1): exact agreement with step-by-step simulation, data pairs, falls, CLI."""
+"""True-system rollouts: exact agreement with step-by-step simulation, data pairs, falls, CLI."""
 
 import jax
 import jax.numpy as jnp
@@ -56,7 +56,7 @@ def test_unicycle_fall_stops_the_trajectory():
     assert bool(task.fallen(s_fall))  # the discarded transition is the one that falls
     assert np.all(np.asarray(traj.costs[n:]) == 0.0)
     inputs, targets = training_pairs(task, traj)
-    assert inputs.shape == (n, 11) and targets.shape == (n, 10)  # fallen transition discarded (§1.4)
+    assert inputs.shape == (n, 11) and targets.shape == (n, 10)  # fallen transition discarded (as PILCO's rollout.m)
 
 
 def test_cli_rollout_prints_the_library_returns(capsys):

@@ -1,4 +1,4 @@
-"""Numerical stress suite (issue 6, item 4; the case list, commands and wall times: docs/stress.md).
+"""Numerical stress suite (the case list, commands and wall times: docs/stress.md).
 
 Every case pushes one setting to an extreme on a small cart-pole GP model (2 random rollouts of
 8 steps, 16 transitions; P = 32 particles), or pushes the GP fit itself, and asserts:
@@ -47,7 +47,7 @@ P = 32
 TASK = make_task("cartpole_swingup", horizon=8)  # 8-step random rollouts for the data; T is set per case
 ESTIMATORS = ("rp", "lr", "lr_plain", "tp", "tp_loo", "gtp", "glr", "del", "gr")  # "gr": RP with Gaussian resampling
 # The suite's TP and GTP weigh with k_LR "previous" (on a first iteration: this batch's weight), the
-# rule the k_LR assertions below are about; "tp_loo" is the library's TP since issue 20
+# rule the k_LR assertions below are about; "tp_loo" is the library's TP now
 # (leave-one-out weights, one per particle), checked for containment and reporting.
 _BUILT = {"gr": lambda: estimator("rp"), "tp": lambda: estimator("tp", k_lr="previous"),
           "gtp": lambda: estimator("gtp", k_lr="previous"), "tp_loo": lambda: estimator("tp")}

@@ -1,6 +1,6 @@
-"""Tasks: physics against tasks.md §7.3, integrator accuracy, presets, and the gymnasium envs.
+"""Tasks: physics against reference values from PILCO's code, integrator accuracy, presets, and the gymnasium envs.
 
-Reference vectors are checked to 1e-9 max abs error (tasks.md §1 step 2.3 and §7.3).
+Reference vectors are checked to 1e-9 max abs error (docs/task-cartpole.md, "Integrator and measured accuracy").
 Statistical checks use a fixed seed and a tolerance of ``b`` standard errors, ``b`` the
 two-sided normal quantile at a family-wise level of 1e-3, Bonferroni-corrected over the
 comparisons a test makes; each has a companion showing it rejects a plausible mistake.
@@ -33,10 +33,10 @@ from pipps.tasks.unicycle import (
 
 T.register_envs()
 
-TOL = 1e-9  # tasks.md §7.3: "reproduces §7.3 to about 1e-9"
+TOL = 1e-9  # any integrator that reproduces the reference steps to about 1e-9 is accepted
 FAMILY_ALPHA = 1e-3
 
-# -- tasks.md §7.3 reference values -----------------------------------------------------------
+# -- reference values (PILCO's code, scipy DOP853) -------------------------------------------------
 CP_S = np.array([0.3, -0.5, 1.2, 2.0])
 CP_U = np.array([4.0])
 CP_DS = np.array([-0.5, 3.016080716629, -23.022504847296, 1.2])
@@ -61,7 +61,7 @@ def max_err(a, b) -> float:
 
 
 def dop853_step(ode, s, u, dt):
-    """The §7.3 reference integrator: scipy DOP853 with rtol = atol = 1e-12."""
+    """The reference integrator: scipy DOP853 with rtol = atol = 1e-12."""
     f = jax.jit(lambda y: ode(y, jnp.asarray(u)))
     sol = solve_ivp(lambda t, y: np.asarray(f(jnp.asarray(y))), (0.0, dt), np.asarray(s, float),
                     method="DOP853", rtol=1e-12, atol=1e-12)  # fmt: skip
@@ -88,13 +88,13 @@ def test_cartpole_one_step_matches_reference(preset):
 
 def test_cartpole_step_matches_dop853():
     task = make_task("cartpole_swingup")
-    s = np.array([-0.4, 1.5, 6.0, 3.5])  # a fast state, away from the §7.3 ones
+    s = np.array([-0.4, 1.5, 6.0, 3.5])  # a fast state, away from the reference ones
     u = np.array([-7.0])
     assert max_err(task.step(jnp.asarray(s), jnp.asarray(u)), dop853_step(cartpole_ode, s, u, task.dt)) < TOL
 
 
 def test_cartpole_energy_conserved_without_friction():
-    """tasks.md §7.2 item 4: drift < 1e-9 over 5 s for b = 0, u = 0, from a nontrivial state."""
+    """Energy conservation: drift < 1e-9 over 5 s for b = 0, u = 0, from a nontrivial state."""
     params = CartPoleParams(b=0.0)
     s0 = jnp.array([0.2, 1.0, 3.0, 2.5])
     u = jnp.zeros(1)
@@ -186,7 +186,7 @@ def test_unicycle_fall_condition():
 
 
 def test_unicycle_model_start_distribution_is_the_moments_of_x_of_s0():
-    """tasks.md §3.4: analytic mean/covariance of x(s0) against 40 000 samples of s0."""
+    """The unicycle's planning start: analytic mean/covariance of x(s0) against 40 000 samples of s0."""
     task = make_task("unicycle")
     n = 40_000
     rng = np.random.default_rng(0)
@@ -218,7 +218,7 @@ def test_integrator_is_vmappable_and_jittable():
 
 
 def test_integrator_error_falls_with_substeps():
-    """RK4: error ∝ substeps⁻⁴ against the §7.3 vector (ratio ≈ 16 per doubling)."""
+    """RK4: error ∝ substeps⁻⁴ against the reference vector (ratio ≈ 16 per doubling)."""
     errs = [max_err(integrate_interval(unicycle_ode, jnp.asarray(UC_S), jnp.asarray(UC_U), 0.15, n), UC_STEP)
             for n in (10, 20)]  # fmt: skip
     assert 10.0 < errs[0] / errs[1] < 20.0
@@ -298,7 +298,7 @@ def test_a_task_is_a_problem_and_a_simulator():
 
 
 def test_costs_wired_and_match_reference():
-    """§7.3 cost values through make_task (tip cost by name; pilco default), unicycle cost, angle cost."""
+    """Reference cost values through make_task (tip cost by name; pilco default), unicycle cost, angle cost."""
     tip_cost = make_task("cartpole_swingup", "pilco").cost
     assert make_task("cartpole_swingup", cost="tip").cost.name == "tip" == tip_cost.name
     tip = jax.jit(tip_cost)
