@@ -276,8 +276,8 @@ def action_nodes(k_lr: str | float = DEFAULT_K_LR) -> ActionNodes:
 
 
 def robust(gamma: float = float("inf"), z: float = 2.0, k_lr: str | float = DEFAULT_K_LR, messages: str = "mixed") -> Robust:
-    """The robust combiner (Suh et al.'s AoBG; docs/estimators.md, "Robust combiner"): bias bound
-    ``γ ≥ 0`` (∞: inverse variance), confidence ``z ≥ 0``; ``messages`` as for :func:`inverse_variance`."""
+    """The robust combiner (Suh et al.'s AoBG; docs/estimators.md, "Choices the thesis left open"):
+    bias bound ``γ ≥ 0`` (∞: inverse variance), confidence ``z ≥ 0``; ``messages`` as for :func:`inverse_variance`."""
     if messages not in MESSAGES:
         raise ValueError(f"messages must be one of {MESSAGES}, got {messages!r}")
     if not float(gamma) >= 0.0:
