@@ -2,8 +2,8 @@
 
 The environment is stepped with its own ``reset(seed=…)`` and ``step`` (``pipps.tasks.from_gymnasium``);
 pipps adds a cost, a success criterion and the map from its observation into the model state the
-GP learns. Results and the commands in docs/experiments.md ("A gymnasium environment as the true
-system")::
+GP learns. Results and the commands in docs/experiments.md ("Your own task, and gymnasium
+environments as the true system")::
 
     pipps sweep --task experiments.gym_pendulum:pendulum --preset quick --seeds 5 --jobs 1 --out runs/gym-pendulum
     pipps table runs/gym-pendulum --preset quick --per-seed
