@@ -125,7 +125,7 @@ class FitcFitInfo(NamedTuple):
 
 # Settings that change the program (shapes, loop structure, Python branches) are static pytree
 # metadata; settings that only change a number are leaves, traced under jit, so that e.g. a new
-# noise floor or budget does not recompile (style.md).
+# noise floor or budget does not recompile (docs/gp.md, "Configuration: traced numbers, static structure").
 _STATIC_FIELDS = ("max_linesearch_steps", "memory_size", "penalty_power", "max_jitter_tries",
                   "fitc_threshold", "num_inducing", "fitc_memory_size", "output_batching")
 
