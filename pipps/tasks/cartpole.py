@@ -39,7 +39,7 @@ CARTPOLE_OBS_STD_THESIS = np.array([0.01, 0.1, 10.0 * np.pi / 180.0, np.pi / 180
 #: PILCO (``settings_cp.m``): 0.01 on every component.
 CARTPOLE_OBS_STD_PILCO = np.full(4, 0.01)
 
-#: Start distributions (PILCO's, which the thesis keeps): swing-up starts hanging at rest.
+#: Start distributions (PILCO's; the thesis preset uses them too): swing-up starts hanging at rest.
 CARTPOLE_SWINGUP_MEAN = np.zeros(4)
 #: Balancing (thesis "DEL" task): the thesis only says the pole starts upright; we take
 #: the swing-up distribution shifted to θ = π (cart centred, at rest), same covariance.
