@@ -9,7 +9,8 @@ unbatched and the batched runs, typed trial records, ``restore``; docs/architect
 
 ``run`` covers every path of the loop: an unbatched TP run whose GP turns FITC (full and sparse
 warm starts), PILCO, a fixed-seed method, the low-rank variance, two seeds batched by ``lax.map``
-and by ``vmap``, and a resume from trial 3. ``compare`` requires every dataset and attribute to be
+and by ``vmap``, a resume from trial 3, and the other built-in tasks (unicycle TP and PILCO,
+cart-pole balancing) and the pilco task preset (TP and PILCO). ``compare`` requires every dataset and attribute to be
 equal bit for bit (value, dtype, shape, compression), except the seconds of the timings, the wall
 time and the versions, which no two runs share. Both parts use only what every pipps version since
 the batched mode has (``run_experiment``, ``run_batched``, ``write_result``, ``read_result``).
@@ -72,6 +73,19 @@ def run(out: Path) -> None:
     whole = read_result(out / "tp_s0.h5")
     part = type(whole)(whole.config, whole.trials[:3], "failed", "KeyboardInterrupt: ", 5.0)
     single("tp_s0_resumed", _small(0), resume=part)
+    # the other built-in tasks and the pilco task preset: criteria without a return threshold
+    # (the unicycle's "upright"), cart-pole balancing, the tip cost with PILCO's task budget
+    from pipps.experiments import resolve_config
+
+    tiny = dict(num_learned=2, num_particles=8, policy_evals=6, eval_rollouts=3, gp_max_iters=10, progress_chunk=4,
+                store_particles=4)
+    single("unicycle_tp", resolve_config("quick", "unicycle", seed=0, **tiny, num_random=2))
+    single("unicycle_pilco", resolve_config("quick", "unicycle", seed=1, method="pilco", pilco_linesearches=3,
+                                            num_learned=1, eval_rollouts=3, gp_max_iters=10, num_random=2))
+    single("balance_tp", resolve_config("quick", "cartpole_balance", seed=2, **tiny))
+    single("pilcopreset_tp", resolve_config("pilco", "cartpole_swingup", seed=3, **tiny))
+    single("pilcopreset_pilco", resolve_config("pilco", "cartpole_swingup", seed=4, method="pilco", num_learned=1,
+                                               pilco_linesearches=4, eval_rollouts=3, gp_max_iters=10))
 
 
 def _entries(g: h5py.Group, prefix: str = "") -> dict:
