@@ -22,7 +22,7 @@ repository's root (its ``experiments`` folder imports as a namespace package)::
   plans on it too.
 * **Success.** A rollout succeeds when the environment never ended it (every transition valid:
   the tip stayed up for the 2 s), an experiment when half its final evaluation rollouts do.
-  Random actions fall within about 0.3–0.5 s.
+  Random actions fall within about 0.2–0.35 s (4–7 steps).
 * **Policy.** Linear (balancing near an equilibrium), as the thesis' unicycle uses.
 """
 
