@@ -288,6 +288,27 @@ def _noise_multiplier(owner: str, value) -> float:
     return k
 
 
+def _check_system_fields(sim, own: str) -> None:
+    """Validate and normalise the fields both kinds of true system share (name, dt, the start
+    distribution, the observation noise, random actions, wrapped components, ``sim_to_model``)."""
+    if not isinstance(sim.name, str) or not sim.name:
+        _fail(own, "name", f"must be a non-empty string, got {sim.name!r}")
+    _set(sim, "dt", _positive(own, "dt", sim.dt))
+    sim_dim = sim.sim_dim
+    if sim_dim is None:
+        if np.ndim(sim.init_mean) != 1:
+            _fail(own, "init_mean", f"must be a 1-d array, got shape {np.shape(sim.init_mean)}")
+        sim_dim = np.shape(sim.init_mean)[0]
+    _set(sim, "sim_dim", _count(own, "sim_dim", sim_dim))
+    _set(sim, "init_mean", _array(own, "init_mean", sim.init_mean, (sim.sim_dim,)))
+    _set(sim, "init_cov", _covariance(own, "init_cov", sim.init_cov, sim.sim_dim))
+    _set(sim, "obs_noise_std", _noise(own, sim.obs_noise_std, sim.sim_dim))
+    _set(sim, "u_rand", _random_actions(own, sim.u_rand))
+    _set(sim, "noise_multiplier", _noise_multiplier(own, sim.noise_multiplier))
+    _set(sim, "periodic", tuple(sim.periodic))
+    _callable(own, "sim_to_model", sim.sim_to_model)
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class Simulator:
     """The true system: what a rollout integrates, observes and maps into the model state.
@@ -318,24 +339,9 @@ class Simulator:
 
     def __post_init__(self):
         own = "Simulator"
-        if not isinstance(self.name, str) or not self.name:
-            _fail(own, "name", f"must be a non-empty string, got {self.name!r}")
-        _set(self, "dt", _positive(own, "dt", self.dt))
-        sim_dim = self.sim_dim
-        if sim_dim is None:
-            if np.ndim(self.init_mean) != 1:
-                _fail(own, "init_mean", f"must be a 1-d array, got shape {np.shape(self.init_mean)}")
-            sim_dim = np.shape(self.init_mean)[0]
-        _set(self, "sim_dim", _count(own, "sim_dim", sim_dim))
-        _set(self, "init_mean", _array(own, "init_mean", self.init_mean, (self.sim_dim,)))
-        _set(self, "init_cov", _covariance(own, "init_cov", self.init_cov, self.sim_dim))
-        _set(self, "obs_noise_std", _noise(own, self.obs_noise_std, self.sim_dim))
-        _set(self, "u_rand", _random_actions(own, self.u_rand))
+        _check_system_fields(self, own)
         _set(self, "substeps", _count(own, "substeps", self.substeps))
-        _set(self, "noise_multiplier", _noise_multiplier(own, self.noise_multiplier))
-        _set(self, "periodic", tuple(self.periodic))
         _callable(own, "ode", self.ode)
-        _callable(own, "sim_to_model", self.sim_to_model)
         _callable(own, "fallen", self.fallen, optional=True)
 
     def step(self, s: jax.Array, u: jax.Array) -> jax.Array:
@@ -390,23 +396,8 @@ class HostSimulator:
 
     def __post_init__(self):
         own = "HostSimulator"
-        if not isinstance(self.name, str) or not self.name:
-            _fail(own, "name", f"must be a non-empty string, got {self.name!r}")
-        _set(self, "dt", _positive(own, "dt", self.dt))
+        _check_system_fields(self, own)
         _callable(own, "make_system", self.make_system)
-        sim_dim = self.sim_dim
-        if sim_dim is None:
-            if np.ndim(self.init_mean) != 1:
-                _fail(own, "init_mean", f"must be a 1-d array, got shape {np.shape(self.init_mean)}")
-            sim_dim = np.shape(self.init_mean)[0]
-        _set(self, "sim_dim", _count(own, "sim_dim", sim_dim))
-        _set(self, "init_mean", _array(own, "init_mean", self.init_mean, (self.sim_dim,)))
-        _set(self, "init_cov", _covariance(own, "init_cov", self.init_cov, self.sim_dim))
-        _set(self, "obs_noise_std", _noise(own, self.obs_noise_std, self.sim_dim))
-        _set(self, "u_rand", _random_actions(own, self.u_rand))
-        _set(self, "noise_multiplier", _noise_multiplier(own, self.noise_multiplier))
-        _set(self, "periodic", tuple(self.periodic))
-        _callable(own, "sim_to_model", self.sim_to_model)
 
     def system(self) -> HostSystem:
         """This process's system, built on first use."""
