@@ -201,22 +201,43 @@ def chart(path: str, title: str, x: Axis, y: Axis, size: tuple[float, float] = (
 
 def _text(rec, path: str, positions, labels, color=BLACK) -> None:
     """Labels centred on ``positions`` (view coordinates)."""
+    positions = np.asarray(positions, dtype=float).reshape(-1, 2)
+    if isinstance(rec, SvgCanvas):
+        rec.text(path, positions, labels, color)
+        return
     import rerun as rr
 
-    positions = np.asarray(positions, dtype=float).reshape(-1, 2) - [0.0, TEXT_HEIGHT / 2 + LABEL_DROP]
+    positions = positions - [0.0, TEXT_HEIGHT / 2 + LABEL_DROP]  # a viewer label hangs below its point
     rec.log(path, rr.Points2D(positions, radii=[0.0], labels=list(labels), colors=[color], show_labels=True,
                               draw_order=[100.0]), static=True)
 
 
-def draw_axes(rec, c: Chart, *, grid: bool = True) -> None:
-    """The plot box, ticks with labels, light grid lines, the axis labels and the title."""
+def _strips(rec, path: str, strips, color, radius: float, order: float = 20.0) -> None:
+    """Line strips (view coordinates); ``radius`` < 0 is in UI points, > 0 in view units."""
+    if isinstance(rec, SvgCanvas):
+        rec.strips(path, strips, color, radius, order)
+        return
     import rerun as rr
 
+    rec.log(path, rr.LineStrips2D(strips, colors=[color], radii=[radius], draw_order=[order]), static=True)
+
+
+def _dots(rec, path: str, positions, color, radius: float, order: float = 30.0) -> None:
+    """Filled discs of ``radius`` (as :func:`_strips`) at ``positions`` (view coordinates)."""
+    if isinstance(rec, SvgCanvas):
+        rec.dots(path, positions, color, radius, order)
+        return
+    import rerun as rr
+
+    rec.log(path, rr.Points2D(positions, colors=[color], radii=[radius], draw_order=[order]), static=True)
+
+
+def draw_axes(rec, c: Chart, *, grid: bool = True) -> None:
+    """The plot box, ticks with labels, light grid lines, the axis labels and the title."""
     left, _, bottom, _ = c.margins
     w, h = c.box
     x0, x1, y0, y1 = left, left + w, -bottom, -(bottom + h)
-    rec.log(f"{c.path}/axes/box", rr.LineStrips2D([[[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]], colors=[BLACK],
-                                                  radii=[-0.6], draw_order=[20.0]), static=True)
+    _strips(rec, f"{c.path}/axes/box", [[[x0, y0], [x1, y0], [x1, y1], [x0, y1], [x0, y0]]], BLACK, -0.6, 20.0)
     for name, axis in (("x", c.x), ("y", c.y)):
         values, labels, minor = axis.tick_marks()
         if name == "x":
@@ -227,12 +248,11 @@ def draw_axes(rec, c: Chart, *, grid: bool = True) -> None:
         def tick(p, length):
             return [[p, y0], [p, y0 + length]] if name == "x" else [[x0, p], [x0 - length, p]]
 
-        rec.log(f"{c.path}/axes/{name}ticks", rr.LineStrips2D([tick(p, 5.0) for p in pos] + [tick(p, 3.0) for p in mpos],
-                                                              colors=[BLACK], radii=[-0.5], draw_order=[20.0]), static=True)
+        _strips(rec, f"{c.path}/axes/{name}ticks", [tick(p, 5.0) for p in pos] + [tick(p, 3.0) for p in mpos], BLACK,
+                -0.5, 20.0)
         if grid and len(pos):
             lines = [[[p, y0], [p, y1]] for p in pos] if name == "x" else [[[x0, p], [x1, p]] for p in pos]
-            rec.log(f"{c.path}/axes/{name}grid", rr.LineStrips2D(lines, colors=[LIGHT_GREY], radii=[-0.4], draw_order=[1.0]),
-                    static=True)
+            _strips(rec, f"{c.path}/axes/{name}grid", lines, LIGHT_GREY, -0.4, 1.0)
         if name == "x":
             at = [[p, y0 + 8.0 + TEXT_HEIGHT / 2] for p in pos]
         else:
@@ -299,15 +319,13 @@ def line(rec, c: Chart, name: str, x, y, color, *, width: float = 1.2, dash: boo
     """A polyline through the data points, clipped to the plot box; ``dash`` draws it dashed; without
     ``partial`` a segment with an end outside the box is left out rather than cut (for a series that is
     mostly off scale). ``width`` is in UI points (the stroke's radius)."""
-    import rerun as rr
-
     p = c.xy(x, y)
     if not partial:
         p = np.where(c.inside(p)[:, None], p, np.nan)
     pieces = clip(c, p)
     if dash:
         pieces = [d for p in pieces for d in _dashes(p, 7.0, 5.0)]
-    rec.log(f"{c.path}/data/{name}", rr.LineStrips2D(pieces, colors=[color], radii=[-width], draw_order=[order]), static=True)
+    _strips(rec, f"{c.path}/data/{name}", pieces, color, -width, order)
 
 
 def _dashes(strip: np.ndarray, on: float, off: float) -> list[np.ndarray]:
@@ -325,17 +343,12 @@ def _dashes(strip: np.ndarray, on: float, off: float) -> list[np.ndarray]:
 
 def points(rec, c: Chart, name: str, x, y, color, *, size: float = 3.5, order: float = 30.0) -> None:
     """Markers (radius ``size`` UI points) at the data points inside the plot box."""
-    import rerun as rr
-
     p = c.xy(x, y).reshape(-1, 2)
-    rec.log(f"{c.path}/data/{name}", rr.Points2D(p[c.inside(p)], colors=[color], radii=[-size], draw_order=[order]),
-            static=True)
+    _dots(rec, f"{c.path}/data/{name}", p[c.inside(p)], color, -size, order)
 
 
 def off_range(rec, c: Chart, name: str, x, y, color) -> None:
     """Triangles on the plot box's top (bottom) edge where a value lies above (below) the y range."""
-    import rerun as rr
-
     x, y = np.ravel(np.asarray(x, dtype=float)), np.ravel(np.asarray(y, dtype=float))
     fy = c.y.fraction(y)
     tris = []
@@ -347,19 +360,16 @@ def off_range(rec, c: Chart, name: str, x, y, color) -> None:
             continue
         dy = 9.0 if f > 1 else -9.0  # apex on the edge, base inside the box (view y grows downwards)
         tris.append(at + np.array([[-5.0, dy], [5.0, dy], [0.0, 0.0], [-5.0, dy]]))
-    rec.log(f"{c.path}/data/{name}", rr.LineStrips2D(tris, colors=[color], radii=[-1.2], draw_order=[35.0]), static=True)
+    _strips(rec, f"{c.path}/data/{name}", tris, color, -1.2, 35.0)
 
 
 def markers(rec, c: Chart, name: str, x, y, color, shape: str = "diamond", *, size: float = 7.0) -> None:
     """Hollow markers at the data points inside the plot box: ``diamond`` (half-diagonal ``size``
     pixels) or ``bar`` (a short horizontal stroke ``2·size`` wide)."""
-    import rerun as rr
-
     p = c.xy(x, y).reshape(-1, 2)
     p = p[c.inside(p)]
-    rec.log(f"{c.path}/data/{name}", rr.LineStrips2D([q + d for q in p for d in _shape(shape, size)], colors=[color],
-                                                     radii=[-1.1 if shape == "diamond" else -1.6], draw_order=[40.0]),
-            static=True)
+    _strips(rec, f"{c.path}/data/{name}", [q + d for q in p for d in _shape(shape, size)], color,
+            -1.1 if shape == "diamond" else -1.6, 40.0)
 
 
 def _shape(shape: str, size: float) -> list[np.ndarray]:
@@ -381,8 +391,6 @@ def text(rec, c: Chart, name: str, x, y, labels: Sequence[str], *, above: bool =
 
 def intervals(rec, c: Chart, name: str, x, lo, hi, color, *, cap: float = 4.0, width: float = 1.0) -> None:
     """Vertical error bars from ``lo`` to ``hi`` with caps of half-width ``cap`` pixels, clipped."""
-    import rerun as rr
-
     strips = []
     for xi, a, b in zip(np.ravel(x), np.ravel(lo), np.ravel(hi)):
         pa, pb = c.xy(xi, a), c.xy(xi, b)
@@ -390,14 +398,12 @@ def intervals(rec, c: Chart, name: str, x, lo, hi, color, *, cap: float = 4.0, w
         for q in (pa, pb):
             if c.inside(q[None]).all():
                 strips.append(np.array([q - [cap, 0.0], q + [cap, 0.0]]))
-    rec.log(f"{c.path}/data/{name}", rr.LineStrips2D(strips, colors=[color], radii=[-width], draw_order=[25.0]), static=True)
+    _strips(rec, f"{c.path}/data/{name}", strips, color, -width, 25.0)
 
 
 def band(rec, c: Chart, name: str, x, lo, hi, color) -> None:
-    """The region between two curves, filled (2-d views draw no polygons: dense opaque vertical strokes,
-    the band linearly interpolated between the data points)."""
-    import rerun as rr
-
+    """The region between two curves, filled, linearly interpolated between the data points (2-d views
+    draw no polygons: dense opaque vertical strokes; an SVG gets the outline of the same strokes)."""
     x, lo, hi = (np.asarray(v, dtype=float) for v in (x, lo, hi))
     ok = np.isfinite(x) & np.isfinite(lo) & np.isfinite(hi)
     if ok.sum() < 2:
@@ -412,7 +418,19 @@ def band(rec, c: Chart, name: str, x, lo, hi, color) -> None:
     for g, k in zip(grid, xs):
         a, b = c.xy(np.interp(k, idx, x), np.interp(k, idx, lo))[..., 1], c.xy(np.interp(k, idx, x), np.interp(k, idx, hi))[..., 1]
         strips += clip(c, np.array([[g, float(a)], [g, float(b)]]))
-    rec.log(f"{c.path}/data/{name}", rr.LineStrips2D(strips, colors=[color], radii=[1.0], draw_order=[5.0]), static=True)
+    if isinstance(rec, SvgCanvas):  # each run of neighbouring strokes is one polygon: their tops, then their bottoms
+        runs: list[list[np.ndarray]] = []
+        for st in (st for st in strips if len(st) == 2):
+            if runs and st[0, 0] - runs[-1][-1][0, 0] <= 1.5 * step:
+                runs[-1].append(st)
+            else:
+                runs.append([st])
+        for run in runs:
+            top = [st[np.argmin(st[:, 1])] for st in run]
+            bottom = [st[np.argmax(st[:, 1])] for st in run]
+            rec.polygon(f"{c.path}/data/{name}", np.array(top + bottom[::-1]), color, 5.0)
+        return
+    _strips(rec, f"{c.path}/data/{name}", strips, color, 1.0, 5.0)
 
 
 def note(rec, c: Chart, name: str, text: str, *, row: int = 0) -> None:
@@ -462,8 +480,6 @@ def _legend_rows(keys: Sequence[Key], width: float) -> list[list[Key]]:
 
 def draw_legend(rec, c: Chart, keys: Sequence[Key]) -> None:
     """The entries of a :func:`legend_chart`, each row centred: a sample of the stroke, then its text."""
-    import rerun as rr
-
     for r, row in enumerate(_legend_rows(keys, c.size[0])):
         y = -c.size[1] + 18.0 + 26.0 * r
         x = (c.size[0] - sum(_entry_width(k) for k in row)) / 2
@@ -473,18 +489,17 @@ def draw_legend(rec, c: Chart, keys: Sequence[Key]) -> None:
             mid = sample.mean(0)
             if k.style in ("line", "dash"):
                 strips = _dashes(sample, 7.0, 5.0) if k.style == "dash" else [sample]
-                rec.log(path, rr.LineStrips2D(strips, colors=[k.color], radii=[-1.4]), static=True)
+                _strips(rec, path, strips, k.color, -1.4)
             elif k.style == "band":
-                rec.log(path, rr.LineStrips2D([sample], colors=[k.color], radii=[6.0]), static=True)
+                _strips(rec, path, [sample], k.color, 6.0)
             elif k.style == "point":
-                rec.log(path, rr.Points2D([mid], colors=[k.color], radii=[-k.size]), static=True)
+                _dots(rec, path, [mid], k.color, -k.size)
             elif k.style in ("diamond", "bar"):
-                rec.log(path, rr.LineStrips2D([mid + d for d in _shape(k.style, 7.0)], colors=[k.color],
-                                              radii=[-1.1 if k.style == "diamond" else -1.6]), static=True)
+                _strips(rec, path, [mid + d for d in _shape(k.style, 7.0)], k.color, -1.1 if k.style == "diamond" else -1.6)
             elif k.style == "interval":
-                rec.log(path, rr.LineStrips2D([[mid - [0, 8], mid + [0, 8]], [mid - [4, 8], mid + [4, -8]],
-                                               [mid - [4, -8], mid + [4, 8]]], colors=[k.color], radii=[-1.0]), static=True)
-                rec.log(f"{path}_point", rr.Points2D([mid], colors=[k.color], radii=[-3.5]), static=True)
+                _strips(rec, path, [[mid - [0, 8], mid + [0, 8]], [mid - [4, 8], mid + [4, -8]], [mid - [4, -8], mid + [4, 8]]],
+                        k.color, -1.0)
+                _dots(rec, f"{path}_point", [mid], k.color, -3.5)
             else:
                 raise ValueError(f"legend style {k.style!r}")
             _text(rec, f"{path}_label", [[x + 34.0 + CHAR_WIDTH * len(k.label) / 2, y]], [k.label])
@@ -526,12 +541,11 @@ def _blanks(fig: Figure) -> int:
 
 def draw(rec, fig: Figure) -> None:
     """Every chart's axes, and the legend."""
-    import rerun as rr
-
     for c in fig.charts:
         draw_axes(rec, c)
-    for i in range(_blanks(fig)):  # an empty view would say "No data available"
-        rec.log(f"blank_{i}", rr.Points2D([[0.0, 0.0]], radii=[0.0], colors=[WHITE]), static=True)
+    if not isinstance(rec, SvgCanvas):
+        for i in range(_blanks(fig)):  # an empty view would say "No data available"
+            _dots(rec, f"blank_{i}", [[0.0, 0.0]], WHITE, 0.0)
     if fig.legend is not None:
         draw_legend(rec, fig.legend, fig.keys)
 
@@ -558,15 +572,106 @@ def size(fig: Figure) -> str:
     return f"{int(round(w))}x{int(round(h))}"
 
 
+# -- SVG -----------------------------------------------------------------------------------------------
+
+
+class SvgCanvas:
+    """A figure drawn as one SVG document instead of a rerun recording: the same geometry (the
+    functions above draw on either), each panel at its place in the figure's grid and the legend
+    below, text as plain text (a viewer label sits in a box). A vector figure for a paper, written
+    without a viewer or a display."""
+
+    def __init__(self, fig: Figure):
+        w, h = fig.charts[0].size
+        self.places = {c.path: (i % fig.columns * w, i // fig.columns * h, c.size[1]) for i, c in enumerate(fig.charts)}
+        rows = math.ceil(len(fig.charts) / fig.columns)
+        if fig.legend is not None:
+            self.places[fig.legend.path] = (0.0, rows * h, fig.legend.size[1])
+        self.width = fig.columns * w
+        self.height = rows * h + (fig.legend.size[1] if fig.legend is not None else 0.0)
+        self._items: list[tuple[float, int, str]] = []
+
+    def _place(self, path: str, points) -> np.ndarray:
+        """Document coordinates of view points logged under ``path`` (the panel whose path prefixes it)."""
+        owner = max((p for p in self.places if path == p or path.startswith(p + "/")),
+                    key=len, default=None)
+        if owner is None:
+            raise ValueError(f"{path!r} belongs to no panel of the figure")
+        x0, y0, h = self.places[owner]
+        return np.asarray(points, dtype=float).reshape(-1, 2) + [x0, y0 + h]
+
+    def _add(self, order: float, item: str) -> None:
+        self._items.append((order, len(self._items), item))
+
+    def strips(self, path: str, strips, color, radius: float, order: float) -> None:
+        for strip in strips:
+            p = self._place(path, strip)
+            p = p[np.all(np.isfinite(p), axis=1)]
+            if len(p) < 2:
+                continue
+            self._add(order, f'<polyline points="{_svg_points(p)}" fill="none" stroke="{_svg_color(color)}" '
+                             f'stroke-width="{2 * abs(radius):.2f}" stroke-linecap="round" stroke-linejoin="round"/>')
+
+    def polygon(self, path: str, outline, color, order: float) -> None:
+        p = self._place(path, outline)
+        if len(p) >= 3:
+            self._add(order, f'<polygon points="{_svg_points(p)}" fill="{_svg_color(color)}" stroke="{_svg_color(color)}" '
+                             'stroke-width="0.5" stroke-linejoin="round"/>')
+
+    def dots(self, path: str, positions, color, radius: float, order: float) -> None:
+        if radius == 0:
+            return
+        for x, y in self._place(path, positions):
+            if np.isfinite(x) and np.isfinite(y):
+                self._add(order, f'<circle cx="{x:.2f}" cy="{y:.2f}" r="{abs(radius):.2f}" fill="{_svg_color(color)}"/>')
+
+    def text(self, path: str, positions, labels, color) -> None:
+        from xml.sax.saxutils import escape
+
+        for (x, y), label in zip(self._place(path, positions), labels):
+            self._add(100.0, f'<text x="{x:.2f}" y="{y:.2f}" fill="{_svg_color(color)}">{escape(str(label))}</text>')
+
+    def write(self, out: str | Path) -> Path:
+        body = "\n".join(item for _, _, item in sorted(self._items))
+        Path(out).write_text(
+            f'<svg xmlns="http://www.w3.org/2000/svg" width="{self.width:.0f}" height="{self.height:.0f}" '
+            f'viewBox="0 0 {self.width:.2f} {self.height:.2f}">\n'
+            f'<rect width="100%" height="100%" fill="white"/>\n'
+            f'<g font-family="DejaVu Sans, Helvetica, Arial, sans-serif" font-size="{SVG_FONT_SIZE}" '
+            f'text-anchor="middle" dominant-baseline="central">\n{body}\n</g>\n</svg>\n', encoding="utf-8")
+        return Path(out)
+
+
+#: the SVG text size (px) whose average glyph is about :data:`CHAR_WIDTH` wide, as the viewer's labels
+SVG_FONT_SIZE = 12.5
+
+
+def _svg_color(color) -> str:
+    return "#" + "".join(f"{int(v):02x}" for v in color[:3])
+
+
+def _svg_points(p: np.ndarray) -> str:
+    return " ".join(f"{x:.2f},{y:.2f}" for x, y in p)
+
+
 @contextlib.contextmanager
-def recording(out: str | Path, application_id: str, default_blueprint) -> Iterator:
-    """A recording stream saving to ``out`` with its default blueprint; flushed and closed on exit."""
+def recording(out: str | Path, application_id: str, layout) -> Iterator:
+    """What to draw on, written to ``out`` on exit: for an ``.svg`` name, an :class:`SvgCanvas` of the
+    figure ``layout``; otherwise a rerun recording stream saving to ``out`` (``.rrd``) with
+    ``layout``'s blueprint (a :class:`Figure`'s, or a blueprint given as is), flushed and closed."""
     import rerun as rr
 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".svg":
+        if not isinstance(layout, Figure):
+            raise ValueError(f"{out}: only a figure is written as SVG (the interactive overview is a recording)")
+        canvas = SvgCanvas(layout)
+        yield canvas
+        canvas.write(out)
+        return
     rec = rr.RecordingStream(application_id)
-    rr.save(out, default_blueprint=default_blueprint, recording=rec)
+    rr.save(out, default_blueprint=blueprint(layout) if isinstance(layout, Figure) else layout, recording=rec)
     try:
         yield rec
     finally:

@@ -25,6 +25,7 @@ take ``--task`` to find the task of results whose stored source has moved.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import sys
 
@@ -266,10 +267,13 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--out", default="pipps.rrd", type=opt.file_name(".rrd"), help="recording to write")
     pl.add_argument("--png", default=None, type=opt.file_name(".png"),
                     help="also render the recording to this PNG (needs xvfb-run, Mesa and the rerun viewer)")
+    pl.add_argument("--svg", default=None, type=opt.file_name(".svg"),
+                    help="also write the figure as SVG: vector, plain text labels, no viewer or display needed "
+                         "(every figure but the interactive overview)")
     pl.add_argument("--size", default=None, type=opt.window_size,
                     help="PNG window size WxH (default: the figure's own layout; 1600x1000 for the overview)")
     pl.add_argument("--overwrite", action="store_true",
-                    help="replace existing --out/--png files (never an experiment result)")
+                    help="replace existing --out/--png/--svg files (never an experiment result)")
 
     from pipps.propagation.estimators import estimator_help
 
@@ -820,6 +824,8 @@ def _cmd_plot(args) -> int:
         if args.png == args.out:
             raise UsageError("--png and --out name one file")
         check_new_file(args.png, overwrite=args.overwrite, option="--png", inputs=tuple(paths), command="pipps plot")
+    if args.svg:
+        check_new_file(args.svg, overwrite=args.overwrite, option="--svg", inputs=tuple(paths), command="pipps plot")
     for task in args.tasks:
         _task_name(task)
     studies = [k for k in map(_study_kind, paths) if k is not None]
@@ -835,19 +841,25 @@ def _cmd_plot(args) -> int:
             raise UsageError(f"--figure {figure} draws a study file (pipps study {figure} / pipps bench output)")
     if args.table is not None and figure not in ("cells", "curves"):
         raise UsageError("--table selects the cells of --figure cells or curves")
+    if args.svg and figure == "overview":
+        raise UsageError("--svg writes a figure for a paper (--figure cells, curves, diagnostics or a study's figure); "
+                         "the overview is an interactive recording (--png renders it)")
     draw = _study_figure if studies else (_result_figure if figure in ("overview", "diagnostics") else _table_figure)
-    with publish(args.out, overwrite=args.overwrite, command="pipps plot") as tmp:
-        size, what = draw(figure, paths, args, tmp)
+    with contextlib.ExitStack() as stack:
+        tmp = stack.enter_context(publish(args.out, overwrite=args.overwrite, command="pipps plot"))
+        svg = stack.enter_context(publish(args.svg, overwrite=args.overwrite, command="pipps plot")) if args.svg else None
+        size, what = draw(figure, paths, args, [tmp] + ([svg] if svg else []))
         if args.png:
             with publish(args.png, overwrite=args.overwrite, command="pipps plot") as png:
                 render_png(tmp, png, args.size or size)
     print(f"wrote {args.out} ({what})")
-    if args.png:
-        print(f"wrote {args.png}")
+    for extra in (args.png, args.svg):
+        if extra:
+            print(f"wrote {extra}")
     return 0
 
 
-def _study_figure(figure, paths, args, out):
+def _study_figure(figure, paths, args, outs):
     from pipps import charts as ch
     from pipps.studies import figures as f
 
@@ -856,13 +868,15 @@ def _study_figure(figure, paths, args, out):
 
         result = read_bench(paths[0])
         fig, _ = f.bench_figure(result)
-        f.record_bench(result, out)
+        for out in outs:
+            f.record_bench(result, out)
     else:
         from pipps.studies.gradients import read_study
 
         result = read_study(paths[0])
         fig, _ = (f.landscape_figure if figure == "landscape" else f.variance_figure)(result)
-        (f.record_landscape if figure == "landscape" else f.record_variance)(result, out)
+        for out in outs:
+            (f.record_landscape if figure == "landscape" else f.record_variance)(result, out)
     return ch.size(fig), f"the {figure} figure of {paths[0]}"
 
 
@@ -879,7 +893,7 @@ def _read_each(paths, reader) -> list:
     return read
 
 
-def _result_figure(figure, paths, args, out):
+def _result_figure(figure, paths, args, outs):
     from pipps import charts as ch
     from pipps.reporting.figures import diagnostics_figure, record_diagnostics
     from pipps.reporting.plot import group_name, record
@@ -889,16 +903,17 @@ def _result_figure(figure, paths, args, out):
     if not results:
         raise UsageError("no complete results to plot")
     if figure == "overview":
-        record(results, out)
+        record(results, outs[0])
         return "1600x1000", f"{len(results)} experiments"
     groups = {}
     for r in sorted(results, key=lambda r: (group_name(r), r.config.seed)):
         groups.setdefault(group_name(r), r)  # the lowest seed of each group
-    record_diagnostics(list(groups.items()), out)
+    for out in outs:
+        record_diagnostics(list(groups.items()), out)
     return ch.size(diagnostics_figure(list(groups.items()))), f"the final trials of {len(groups)} experiment groups"
 
 
-def _table_figure(figure, paths, args, out):
+def _table_figure(figure, paths, args, outs):
     from pipps import charts as ch
     from pipps.experiments.results import read_summary
     from pipps.reporting import figures as f
@@ -922,7 +937,8 @@ def _table_figure(figure, paths, args, out):
             raise UsageError(f"no result of the {args.preset} preset counts in "
                              + (f"table {args.table}" if args.table else "any table") + _other_presets(summaries, args.preset))
         table, cells = filled[0]
-        f.record_curves(table, cells, out)
+        for out in outs:
+            f.record_curves(table, cells, out)
         n = sum(len(rs) for _, rs in cells)
         return ch.size(f.curves_figure(table, cells)), f"learning curves of {n} experiments in table {table.name}"
     judged, errors = judge_counted(summaries, args.preset, args.custom)
@@ -933,7 +949,8 @@ def _table_figure(figure, paths, args, out):
     if not filled:
         raise UsageError(f"no result of the {args.preset} preset counts in "
                          + (f"table {args.table}" if args.table else "any table") + _other_presets(summaries, args.preset))
-    f.record_cells(filled, out)
+    for out in outs:
+        f.record_cells(filled, out)
     n = sum(c.n for _, cells in filled for c in cells)
     return ch.size(f.cells_figure(filled)), f"success rates in table(s) {', '.join(t.name for t, _ in filled)} " \
         f"({n} results counted over their cells)"

@@ -8,6 +8,7 @@ virtual display; that test is marked slow.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import shutil
 from pathlib import Path
@@ -398,3 +399,109 @@ def test_rendered_figure_is_the_figure_alone(tmp_path):
         assert im[y, x].min() > 240, (y, x, im[y, x])
     assert (im.sum(axis=2) < 100).mean() > 0.002  # the black axes and text
     assert png.stat().st_size < 300_000
+
+
+# -- SVG: the same geometry as one vector document ---------------------------------------------------------
+
+
+def read_svg(path):
+    """(width, height, circles (n, 3) cx cy r, polylines [(n, 2)], texts [(x, y, text)]) of a pipps SVG."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(path).getroot()
+    ns = "{http://www.w3.org/2000/svg}"
+    circles = [[float(e.get(k)) for k in ("cx", "cy", "r")] for e in root.iter(f"{ns}circle")]
+    lines = [np.array([[float(v) for v in p.split(",")] for p in e.get("points").split()]) for e in root.iter(f"{ns}polyline")]
+    texts = [(float(e.get("x")), float(e.get("y")), e.text) for e in root.iter(f"{ns}text")]
+    rects = list(root.iter(f"{ns}rect"))
+    assert len(rects) == 1 and rects[0].get("fill") == "white"  # the page; no box behind any text
+    return float(root.get("width")), float(root.get("height")), np.array(circles).reshape(-1, 3), lines, texts
+
+
+def test_svg_places_each_panel_in_the_grid_and_the_legend_below(tmp_path):
+    x, y = ch.Axis("x", 0.0, 10.0), ch.Axis("y", 1.0, 100.0, log=True)
+    charts = [ch.chart(f"f/p{i}", f"panel {i}", x, y, (300.0, 240.0)) for i in range(3)]
+    fig = ch.figure(charts, 2, [ch.Key("data", (200, 0, 0), "point")])
+    with ch.recording(tmp_path / "f.svg", "test", fig) as rec:
+        ch.draw(rec, fig)
+        for i, c in enumerate(charts):
+            ch.points(rec, c, "pt", [2.0 + i], [10.0], (200, 0, 0), size=3.0)
+    w, h, circles, lines, texts = read_svg(tmp_path / "f.svg")
+    assert f"{w:.0f}x{h:.0f}" == ch.size(fig)
+    below = circles[:, 1] > 2 * 240.0  # the legend strip below both rows holds the key's dot
+    assert below.sum() == 1
+    circles = circles[~below]
+    # panel i sits at column i % 2, row i // 2; view y (≤ 0, up) becomes page y (down) from the panel's bottom
+    for i, c in enumerate(charts):
+        vx, vy = c.xy(2.0 + i, 10.0)
+        np.testing.assert_allclose(circles[i], [vx + 300.0 * (i % 2), vy + 240.0 * (i // 2 + 1), 3.0])
+    words = [t for _, _, t in texts]
+    assert ["panel 0", "panel 1", "panel 2"] == [t for t in words if t.startswith("panel")]
+    assert {"1", "10", "10²", "0", "2", "10"} <= set(words) and "data" in words  # plain labels, decades as powers
+    # a y tick label sits level with its tick, left of the plot box
+    c = charts[0]
+    ty = [ty for tx, ty, t in texts if t == "10" and tx < c.margins[0]]  # panels 0 and 2 (column 0)
+    np.testing.assert_allclose(ty, [c.xy(0.0, 10.0)[1] + 240.0, c.xy(0.0, 10.0)[1] + 480.0])
+    assert len(lines) > 10  # box, ticks, grid
+
+
+def test_svg_fills_a_band_as_one_polygon_clipped_to_the_plot_box(tmp_path):
+    import xml.etree.ElementTree as ET
+
+    c = ch.chart("f/p", "p", ch.Axis("x", 0.0, 10.0), ch.Axis("y", 0.0, 1.0), (300.0, 240.0))
+    fig = ch.figure([c], 1)
+    with ch.recording(tmp_path / "b.svg", "test", fig) as rec:
+        ch.band(rec, c, "band", [0.0, 5.0, 10.0], [0.2, 0.4, 0.2], [0.6, 1.5, 0.6], (150, 150, 250))  # the middle runs off the top
+    (poly,) = ET.parse(tmp_path / "b.svg").getroot().iter("{http://www.w3.org/2000/svg}polygon")
+    p = np.array([[float(v) for v in q.split(",")] for q in poly.get("points").split()])
+    np.testing.assert_allclose([p[:, 0].min(), p[:, 0].max()], c.xy([0.0, 10.0], 0.0)[:, 0], atol=1.0)
+    top, bottom = c.xy(0.0, [1.0, 0.0])[:, 1] + 240.0
+    assert p[:, 1].min() >= top - 1e-9 and p[:, 1].max() <= bottom  # clipped at the box's top edge
+    mid = p[np.abs(p[:, 0] - c.xy(5.0, 0.0)[0]) < 0.6]  # at x = 5: from 0.4 up to the box's top
+    np.testing.assert_allclose(sorted(mid[:, 1])[::len(mid) - 1], [top, c.xy(5.0, 0.4)[1] + 240.0], atol=0.5)
+
+
+def test_svg_of_the_cells_figure_holds_the_recordings_marks_and_labels(tmp_path):
+    from pipps.reporting.figures import cells_figure, record_cells
+
+    summaries = [_summary("tp", 1.0, s, [30, 10.0], success=s < 3, final=f)
+                 for s, f in enumerate([(10, 10), (9, 8), (7, 6), (3, 0)])]
+    table = TABLES["4.1"]
+    results = collect(table, summaries)
+    rec, _, _ = read_rrd(record_cells([(table, results)], tmp_path / "t.rrd"))
+    record_cells([(table, results)], tmp_path / "t.svg")
+    fig = cells_figure([(table, results)])
+    c = fig.charts[0]
+    _, _, circles, _, texts = read_svg(tmp_path / "t.svg")
+    rate = positions(rec, f"/{c.path}/data/tp/rate")[0] + [0.0, c.size[1]]
+    assert np.min(np.linalg.norm(circles[:, :2] - rate, axis=1)) < 0.01  # the same point, on the page
+    # every label of the recording is a text of the SVG, at the point the label box is centred on
+    rrd_labels = sorted(t for comps in rec.values() for t in comps.get("labels", []))
+    assert rrd_labels == sorted(t for _, _, t in texts)
+    count = positions(rec, f"/{c.path}/data/tp/counts")[0] + [0.0, c.size[1] + ch.TEXT_HEIGHT / 2 + ch.LABEL_DROP]
+    assert any(t == "4" and abs(x - count[0]) < 0.01 and abs(y - count[1]) < 0.01 for x, y, t in texts)
+
+
+def test_svg_refuses_what_is_not_a_figure(tmp_path):
+    fig = ch.figure([ch.chart("f/p", "p", ch.Axis("x", 0.0, 1.0), ch.Axis("y", 0.0, 1.0))], 1)
+    with pytest.raises(ValueError, match="belongs to no panel"):
+        with ch.recording(tmp_path / "a.svg", "test", fig) as rec:
+            ch.points(rec, dataclasses.replace(fig.charts[0], path="elsewhere"), "pt", [0.5], [0.5], (0, 0, 0))
+    assert not (tmp_path / "a.svg").exists()
+    with pytest.raises(ValueError, match="only a figure"):
+        with ch.recording(tmp_path / "b.svg", "test", ch.blueprint(fig)):
+            pass
+
+
+def test_cli_plot_writes_an_svg_beside_the_recording_and_keeps_an_existing_one(tmp_path, capsys):
+    rrd, svg = tmp_path / "u.rrd", tmp_path / "u.svg"
+    assert main(["plot", *map(str, UNICYCLE), "--figure", "curves", "--table", "4.4", "--out", str(rrd), "--svg", str(svg)]) == 0
+    assert f"wrote {svg}" in capsys.readouterr().out
+    _, _, _, lines, texts = read_svg(svg)
+    assert lines and "TP: 4 seeds" in [t for _, _, t in texts]
+    svg.write_text("mine")
+    assert main(["plot", *map(str, UNICYCLE), "--figure", "cells", "--out", str(tmp_path / "c.rrd"), "--svg", str(svg)]) == 2
+    assert "--overwrite" in capsys.readouterr().err and svg.read_text() == "mine" and not (tmp_path / "c.rrd").exists()
+    assert main(["plot", *map(str, UNICYCLE), "--out", str(tmp_path / "o.rrd"), "--svg", str(tmp_path / "o.svg")]) == 2
+    assert "the overview is an interactive recording" in capsys.readouterr().err
+    assert not (tmp_path / "o.rrd").exists() and not (tmp_path / "o.svg").exists()

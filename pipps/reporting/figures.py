@@ -81,7 +81,7 @@ def _dodge(i: int, n: int) -> float:
 def record_cells(tables: list[tuple[Table, list[CellResult]]], out: str | Path) -> Path:
     """Recording of :func:`cells_figure`; ``tables`` pairs each table with :func:`pipps.reporting.tables.collect`'s cells."""
     fig = cells_figure(tables)
-    with ch.recording(out, "pipps-cells", ch.blueprint(fig)) as rec:
+    with ch.recording(out, "pipps-cells", fig) as rec:
         ch.draw(rec, fig)
         for c, (table, results) in zip(fig.charts, tables):
             methods = _methods_with_results(table, results)
@@ -161,7 +161,7 @@ def record_curves(table: Table, cells: list[tuple[Cell, list[dict[str, Any]]]], 
     """Recording of :func:`curves_figure`; ``cells`` pairs each cell with its counted result summaries
     (:func:`pipps.reporting.tables.cell_summaries`)."""
     fig = curves_figure(table, cells)
-    with ch.recording(out, "pipps-curves", ch.blueprint(fig)) as rec:
+    with ch.recording(out, "pipps-curves", fig) as rec:
         ch.draw(rec, fig)
         charts = iter(fig.charts)
         rows = [row for row in table.rows if any(c.row == row and rs for c, rs in cells)]
@@ -284,7 +284,7 @@ def _gaussian_angle(pred: MomentPrediction, idx: int) -> tuple[np.ndarray, np.nd
 def record_diagnostics(groups: list[tuple[str, ExperimentResult]], out: str | Path) -> Path:
     """Recording of :func:`diagnostics_figure`; ``groups`` pairs a group's name with one of its results."""
     fig = diagnostics_figure(groups)
-    with ch.recording(out, "pipps-diagnostics", ch.blueprint(fig)) as rec:
+    with ch.recording(out, "pipps-diagnostics", fig) as rec:
         ch.draw(rec, fig)
         for gi, (_, r) in enumerate(groups):
             draw_prediction(rec, fig.charts[gi], r, PALETTE[gi % len(PALETTE)])

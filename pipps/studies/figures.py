@@ -118,7 +118,7 @@ def record_landscape(r: LandscapeResult, out: str | Path) -> Path:
     fig, hidden = landscape_figure(r)
     a, b, c = fig.charts
     names = list(r.samples)
-    with ch.recording(out, "pipps-landscape", ch.blueprint(fig)) as rec:
+    with ch.recording(out, "pipps-landscape", fig) as rec:
         ch.draw(rec, fig)
         ch.line(rec, a, "particles_fixed_seed", r.deltas, r.objective_fixed_seed, ch.BLACK, width=1.4)
         ch.line(rec, a, "moment_matching", r.deltas, r.objective_mm, MM_COLOR, width=1.4, dash=True)
@@ -192,7 +192,7 @@ def record_variance(r: VarianceResult, out: str | Path) -> Path:
     """Recording of :func:`variance_figure` (log-log: equal ratios of P and of the variance are equal distances)."""
     fig, hidden = variance_figure(r)
     P = np.asarray(r.particles, dtype=float)
-    with ch.recording(out, "pipps-variance", ch.blueprint(fig)) as rec:
+    with ch.recording(out, "pipps-variance", fig) as rec:
         ch.draw(rec, fig)
         for di, c in enumerate(fig.charts[: len(r.deltas)]):
             for n, grid in r.samples.items():
@@ -248,7 +248,7 @@ def record_bench(r, out: str | Path) -> Path:
     fig, hidden = bench_figure(r)
     names = list(dict.fromkeys(e.series for es in r.entries for e in es))
     sizes = _marker_sizes(r)
-    with ch.recording(out, "pipps-bench", ch.blueprint(fig)) as rec:
+    with ch.recording(out, "pipps-bench", fig) as rec:
         ch.draw(rec, fig)
         for di, c in enumerate(fig.charts):
             for n in names:
