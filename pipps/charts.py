@@ -643,7 +643,7 @@ class SvgCanvas:
 
 
 #: the SVG text size (px) whose average glyph is about :data:`CHAR_WIDTH` wide, as the viewer's labels
-SVG_FONT_SIZE = 12.5
+SVG_FONT_SIZE = 11.5
 
 
 def _svg_color(color) -> str:
