@@ -47,7 +47,19 @@ def _int_at_least(lowest: int):
 
 
 _positive_int = _int_at_least(1)
-_nonnegative_int = _int_at_least(0)
+
+
+def _seed(text: str) -> int:
+    """``--seed``, ``--seed-start``: an integer in [0, MAX_SEED], the seeds every draw can start from
+    (:data:`pipps.experiments.config.MAX_SEED`)."""
+    from pipps.experiments.config import MAX_SEED
+
+    return opt.int_at_least(0, MAX_SEED)(text)
+
+
+#: the most seeds per cell ``pipps sweep --seeds`` takes: ten times the thesis' 100 (a dry run of
+#: Table 4.1 plans about 40 experiments a second)
+MAX_SEEDS = 1000
 
 
 def _jobs(text: str) -> int | None:
@@ -147,7 +159,7 @@ def _add_experiment_options(p: argparse.ArgumentParser, *, single: bool) -> None
         p.add_argument("--cost", default=None, help="angle | tip (cart-pole), unicycle; default: the task preset's")
         p.add_argument("--k", type=_nonnegative_float, default=None,
                        help="observation-noise variance multiplier (default 1)")
-        p.add_argument("--seed", type=_nonnegative_int, default=None, help="default 0")
+        p.add_argument("--seed", type=_seed, default=None, help="default 0")
         p.add_argument("--particles", type=_positive_int, default=None, help="P (default: the preset's)")
     p.add_argument("--set", dest="settings", type=_setting, action="append", default=[], metavar="KEY=VALUE",
                    help="override any experiment setting (repeatable), e.g. --set policy_evals=300")
@@ -168,7 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
     ro.add_argument("--k", type=_nonnegative_float, default=1.0, help="observation-noise variance multiplier")
     ro.add_argument("--policy", default="random-actions", choices=["random-actions", "random-policy"])
     ro.add_argument("--episodes", type=opt.int_at_least(1, 100_000), default=3)
-    ro.add_argument("--seed", type=_nonnegative_int, default=0)
+    ro.add_argument("--seed", type=_seed, default=0)
 
     run = sub.add_parser("run", help="run one episodic learning experiment and write its HDF5 result")
     _add_experiment_options(run, single=True)
@@ -190,8 +202,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="4.1, 4.2, 4.3, 4.4, q001 (Q × 0.01 cell) or del")
     what.add_argument("--task", metavar="TASK",
                       help=f"{TASK_HELP}: its --methods (default tp) × --k (default 1) × seeds, its own table")
-    sw.add_argument("--seeds", type=_positive_int, default=20, help="seeds per cell (0..N-1)")
-    sw.add_argument("--seed-start", type=_nonnegative_int, default=0)
+    sw.add_argument("--seeds", type=opt.int_at_least(1, MAX_SEEDS), default=20,
+                    help=f"seeds per cell, from --seed-start on (default 20, at most {MAX_SEEDS})")
+    sw.add_argument("--seed-start", type=_seed, default=0, help="the first seed (default 0)")
     sw.add_argument("--methods", default=None, type=opt.names("methods", opt.methods),
                     help="comma-separated subset of the table's methods (with --task: the methods to run, default tp)")
     sw.add_argument("--k", dest="ks", default=None, type=opt.float_list(0.0),
@@ -282,7 +295,8 @@ def build_parser() -> argparse.ArgumentParser:
     for name, text in (("landscape", "objective and each estimator's gradient along θ + Δ·d (thesis Fig. 4.2)"),
                        ("variance", "gradient variance against the number of particles (thesis Fig. 4.13)")):
         p = studies.add_parser(name, help=text)
-        p.add_argument("result", help="a result file of a cart-pole run (pipps run/sweep)")
+        p.add_argument("result", help="a result file of a pipps run/sweep experiment, on any task with moment "
+                                      "matching (cart-pole, unicycle, …)")
         p.add_argument("--trial", type=_positive_int, default=None,
                        help="learned trial whose optimisation start is the snapshot (default: the last one the file can rebuild)")
         p.add_argument("--estimators", default=None, help=f"comma-separated, each NAME or NAME:SETTING=VALUE "
@@ -292,7 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="pilco: the moment-matching descent direction (the thesis'); random: a random unit vector")
         p.add_argument("--choices", default="library", choices=["library", "thesis"],
                        help="library (unbiased) or the thesis' own baseline and k_LR")
-        p.add_argument("--seed", type=_nonnegative_int, default=0)
+        p.add_argument("--seed", type=_seed, default=0)
         p.add_argument("--out", default=None, type=opt.file_name(".h5"), help=f"HDF5 output (default: study_{name}.h5)")
         p.add_argument("--rrd", default=None, type=opt.file_name(".rrd"),
                        help="rerun recording (default: the --out name with .rrd)")
@@ -309,7 +323,8 @@ def build_parser() -> argparse.ArgumentParser:
                            help="comma-separated Δ values (default 0,1.5: smooth, chaotic)")
 
     bn = sub.add_parser("bench", help="run time against gradient error per estimator and P, and the Pareto table")
-    bn.add_argument("result", help="a result file of a cart-pole run (the snapshot, as for pipps study)")
+    bn.add_argument("result", help="a result file of a pipps run/sweep experiment, on any task with moment matching "
+                                   "(cart-pole, unicycle, …; the snapshot, as for pipps study)")
     bn.add_argument("--trial", type=_positive_int, default=None, help="learned trial (default: the last one the file can rebuild)")
     bn.add_argument("--estimators", default=None,
                     help=f"comma-separated, as for pipps study (default rp,lr,tp,gtp): {estimator_help()}")
@@ -325,7 +340,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "variance, T > 0 the certified low-rank form at T·σ² (docs/gp.md); each adds a series, with each "
                     "estimate's change from the exact-variance one (default 0)")
     bn.add_argument("--direction", default="pilco", choices=["pilco", "random"])
-    bn.add_argument("--seed", type=_nonnegative_int, default=0)
+    bn.add_argument("--seed", type=_seed, default=0)
     bn.add_argument("--out", default="bench.h5", type=opt.file_name(".h5"), help="HDF5 output")
     bn.add_argument("--rrd", default=None, type=opt.file_name(".rrd"),
                     help="rerun recording (default: the --out name with .rrd)")
@@ -333,39 +348,6 @@ def build_parser() -> argparse.ArgumentParser:
                     help="replace existing --out/--rrd files (never an experiment result)")
     bn.add_argument("--quick", action="store_true", help="a small version that runs in well under a minute")
     return parser
-
-
-def _progress_printer(stream=None):
-    """A one-line progress display: trial, optimization step, current objective, ETA (on stderr by default)."""
-    import time
-
-    state = {"start": time.perf_counter(), "trial": 0, "trials": 1, "done_s": []}
-
-    def show(event):
-        out = sys.stderr if stream is None else stream  # looked up per call: stderr may be replaced
-        phase = event["phase"]
-        if phase == "trial":
-            state.update(trial=event["trial"], trials=event["trials"], t0=time.perf_counter())
-        elapsed = time.perf_counter() - state["start"]
-        done = state["done_s"]
-        eta = ""
-        if done:
-            left = state["trials"] - len(done)
-            eta = f" ETA {max(left, 0) * (sum(done[-3:]) / len(done[-3:])) / 60:.1f} min"
-        head = f"\rtrial {state['trial']} of 0-{state['trials'] - 1} [{elapsed / 60:5.1f} min{eta}]"
-        if phase == "gp":
-            out.write(f"{head} training GP on {event['points']} points".ljust(100))
-        elif phase == "optimize":
-            out.write(f"{head} policy step {event['step']}/{event['steps']} objective {event['objective']:.3f}".ljust(100))
-        elif phase == "evaluated":
-            done.append(event["seconds"])
-            name = event.get("criterion", "upright")
-            passed = event.get("passed", event.get(name, event["upright"]))  # the rollouts meeting the task's criterion
-            out.write(f"{head} evaluated return {event['eval_return']:.3f} ({name} {passed:.0%})"
-                      .ljust(100) + "\n")
-        out.flush()
-
-    return show
 
 
 #: what `pipps run` runs when an option is not given (and `--resume --out FILE` does not read it from FILE)
@@ -410,8 +392,8 @@ def _resume_config(args, out):
 
     try:
         _, stored, _ = verify_result(out)
-    except ResultError as err:
-        raise UsageError(f"--resume: nothing to continue at {out}: {err}") from None
+    except ResultError as err:  # its message starts with the path, named here already
+        raise UsageError(f"--resume: nothing to continue at {out}: {str(err).removeprefix(f'{out}: ')}") from None
     given = _given(args)
     if ":" in given.get("task", ""):  # where the task is now: the resumed run records it
         stored = stored.replace(task=given.pop("task")) if _task_name(args.task) == stored.task else stored
@@ -435,12 +417,12 @@ def _plan_line(cfg, out) -> str:
 
 
 def _cmd_run(args) -> int:
-    from pipps.cli_report import run_estimate
+    from pipps.cli_report import RunProgress, run_cost, run_estimate
     from pipps.experiments.budget import gemm_gflops
     from pipps.experiments.config import experiment_name
     from pipps.experiments.loop import run_experiment
     from pipps.experiments.preflight import check_experiment
-    from pipps.experiments.results import read_result, write_result
+    from pipps.experiments.results import read_result, study_file, write_result
     from pipps.experiments.storage import ResultLock, check_output_file, existing_result
     from pipps.experiments.sweep import available_cpus
 
@@ -457,15 +439,18 @@ def _cmd_run(args) -> int:
     if args.dry_run:
         found = existing_result(out, cfg)
         done = found.trials if found.kind == "unfinished" else 0
-        there = {"missing": "no file yet", "complete": "a complete result of it (refused without --overwrite)",
-                 "other": f"another experiment ({found.detail}; refused without --overwrite)",
-                 "damaged": f"a damaged file ({found.detail}; refused without --overwrite)",
+        fate = "--overwrite replaces it" if args.overwrite else "refused without --overwrite"
+        study = _study_kind(out) if found.kind == "damaged" else None
+        there = {"missing": "no file yet", "complete": f"a complete result of it ({fate})",
+                 "other": f"another experiment ({found.detail}; {fate})",
+                 "damaged": f"{study_file(study)} ({fate})" if study else f"a damaged file ({found.detail}; {fate})",
                  "unreadable": f"a file it cannot read now ({found.detail})"}.get(found.kind)
         if there is None:
-            there = found.describe(cfg.num_trials) + (f"; --resume continues at trial {done}" if done else "")
+            there = found.describe(cfg.num_trials) + (f"; {fate}" if args.overwrite and found.trials else
+                                                      f"; --resume continues at trial {done}" if done else "")
         print(f"would run 1 experiment: {_plan_line(cfg, out)}")
         print(f"  at {out}: {there}")
-        print(f"  {run_estimate(cfg, gemm_gflops(), done if args.resume else 0, available_cpus())}")
+        print(f"  {run_estimate(cfg, run_cost(cfg, gemm_gflops()), done if args.resume else 0, available_cpus())}")
         return 0
     with ResultLock(out):  # held for the whole run: no other process writes this file meanwhile
         found = existing_result(out, cfg)
@@ -480,22 +465,24 @@ def _cmd_run(args) -> int:
                 raise UsageError(f"--resume: nothing to continue at {out}: {why}")
             resume = read_result(out, verify=False)
         elif found.kind != "missing" and not args.overwrite:
+            study = _study_kind(out) if found.kind == "damaged" else None
             why = {"complete": "a complete result of this experiment",
                    "unfinished": f"an unfinished run of this experiment ({found.trials} of {cfg.num_trials} "
                                  "trials); --resume continues it",
                    "other": f"another experiment ({found.detail})",
-                   "damaged": f"a file that is not an intact pipps result ({found.detail})",
+                   "damaged": study_file(study) if study else f"a file that is not an intact pipps result ({found.detail})",
                    "unreadable": f"a file it cannot read now ({found.detail})"}[found.kind]
             raise UsageError(f"{out} already holds {why}; --overwrite replaces it, or pick another --out")
+        progress = None
         if not args.quiet:
+            est = run_cost(cfg, gemm_gflops())  # the estimate printed is the one the ETA counts down from
             print(_plan_line(cfg, out), file=sys.stderr)
-            print(run_estimate(cfg, gemm_gflops(), len(resume.trials) if resume else 0, available_cpus()),
-                  file=sys.stderr)
+            print(run_estimate(cfg, est, len(resume.trials) if resume else 0, available_cpus()), file=sys.stderr)
             if resume is not None:
                 print(f"resuming at trial {len(resume.trials)} (trials 0-{cfg.num_trials - 1})", file=sys.stderr)
+            progress = RunProgress(est, cfg.num_random)
         try:
-            result = run_experiment(cfg, progress=None if args.quiet else _progress_printer(),
-                                    on_trial=lambda r: write_result(out, r), resume=resume)
+            result = run_experiment(cfg, progress=progress, on_trial=lambda r: write_result(out, r), resume=resume)
         except KeyboardInterrupt:
             kept = existing_result(out, cfg)
             print(f"\npipps run: interrupted; {out}: {kept.describe(cfg.num_trials)}"
@@ -510,6 +497,7 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_sweep(args) -> int:
+    from pipps.experiments.config import MAX_SEED
     from pipps.experiments.sweep import import_ray, run_sweep, survey
     from pipps.reporting.tables import table_configs
 
@@ -542,6 +530,9 @@ def _cmd_sweep(args) -> int:
     overrides = _check_settings(args.settings, SWEEP_OWN_OPTIONS, fixed)
     methods, ks = args.methods, args.ks  # lists, read and checked by argparse
     seeds = range(args.seed_start, args.seed_start + args.seeds)
+    if seeds[-1] > MAX_SEED:
+        raise UsageError(f"--seed-start {args.seed_start} with --seeds {args.seeds} reaches seed {seeds[-1]}; "
+                         f"seeds must lie in [0, {MAX_SEED}]")
     try:
         configs = table_configs(table, seeds, args.preset, methods=methods, ks=ks, overrides=overrides)
     except ValueError as err:  # unknown methods; ConfigError (a ValueError) names a bad --set value

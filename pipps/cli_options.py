@@ -15,13 +15,14 @@ import math
 
 def int_at_least(lowest: int, highest: int | None = None):
     """An integer in ``[lowest, highest]``."""
+    bound = f">= {lowest}" if highest is None else f"in [{lowest}, {highest}]"
+
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {lowest}, got {text!r}") from None
+            raise argparse.ArgumentTypeError(f"must be an integer {bound}, got {text!r}") from None
         if value < lowest or (highest is not None and value > highest):
-            bound = f">= {lowest}" if highest is None else f"in [{lowest}, {highest}]"
             raise argparse.ArgumentTypeError(f"must be an integer {bound}, got {text}")
         return value
 

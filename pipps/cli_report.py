@@ -25,9 +25,14 @@ def machine_line(gflops: float) -> str:
             f"{budget.REFERENCE_GFLOPS:.0f} Gflop/s; docs/performance.md, \"Estimating a run's cost\")")
 
 
-def run_estimate(cfg: ExperimentConfig, gflops: float, done: int, cpus: int) -> str:
-    """One experiment's estimate: core-minutes of what is left (trials ``done`` on), by phase."""
-    est = budget.estimate(cfg, gflops, cold=budget.cache_is_cold())
+def run_cost(cfg: ExperimentConfig, gflops: float) -> budget.Estimate:
+    """The cost model's estimate of ``cfg`` on this machine, with the compilation cache as it is now:
+    what ``pipps run`` prints as its estimated cost and counts its ETA down from (:class:`RunProgress`)."""
+    return budget.estimate(cfg, gflops, cold=budget.cache_is_cold())
+
+
+def run_estimate(cfg: ExperimentConfig, est: budget.Estimate, done: int, cpus: int) -> str:
+    """One experiment's estimate (:func:`run_cost`): core-minutes of what is left (trials ``done`` on), by phase."""
     left = est.remaining(done)
     share = left / est.total if est.total else 0.0
     where = (f"; with {cpus} CPUs a lone experiment's step ran 1.4-1.5× faster than on one (measured on 2)"
@@ -35,7 +40,7 @@ def run_estimate(cfg: ExperimentConfig, gflops: float, done: int, cpus: int) -> 
     return (f"estimated cost: {left / 60:.1f} core-minutes"
             + (f" for trials {done}-{cfg.num_trials - 1}" if done else "")
             + f" (policy search {share * est.search / 60:.1f}, GP training {share * est.gp / 60:.1f}){where}; "
-            + machine_line(gflops))
+            + machine_line(est.gflops))
 
 
 def sweep_estimate(rows, gflops: float, workers: int) -> list[str]:
@@ -55,20 +60,82 @@ def sweep_estimate(rows, gflops: float, workers: int) -> list[str]:
     return out
 
 
-# -- a sweep's progress --------------------------------------------------------------------------------
+# -- progress -------------------------------------------------------------------------------------------
+
+
+class RunProgress:
+    """The one-line progress display of ``pipps run`` (on stderr by default): trial, elapsed time,
+    ETA, and the trial's phase (GP training, policy step and objective, evaluated return).
+
+    The ETA is the cost model's per-trial estimate (``est``, the one the "estimated cost" line
+    prints) of the trials not finished yet, with the running trial's time so far taken off its
+    share, until a learned trial has finished; from then on that estimate is rescaled by how long
+    the learned trials took against their estimates. A random trial (no model, no policy search)
+    says nothing about them and does not rescale it. What is left is read off the trial index, so
+    a resumed run counts the trials it resumed after as finished, and the last trial leaves 0."""
+
+    def __init__(self, est: budget.Estimate, num_random: int, stream=None, clock=time.perf_counter):
+        self.trials = est.trials
+        self.num_random = num_random
+        self.actual = self.predicted = 0.0
+        self.clock = clock
+        self.start = self.trial_start = clock()
+        self.trial, self.total = 0, len(est.trials)
+        self.running = False  # a trial has started and not finished
+        self.stream = stream
+
+    def factor(self) -> float:
+        """Measured over estimated seconds of the learned trials finished here (1 before the first)."""
+        return self.actual / self.predicted if self.predicted > 0 else 1.0
+
+    def left(self) -> float:
+        """Seconds the experiment still needs: the trials after the running one, and its rest."""
+        f = self.factor()
+        if not self.running:
+            return f * sum(self.trials[self.trial + 1:])
+        rest = max(f * self.trials[self.trial] - (self.clock() - self.trial_start), 0.0)
+        return rest + f * sum(self.trials[self.trial + 1:])
+
+    def finished(self, trial: int, seconds: float) -> None:
+        self.trial, self.running = trial, False
+        if self.num_random <= trial < len(self.trials):
+            self.actual += seconds
+            self.predicted += self.trials[trial]
+
+    def __call__(self, event: dict) -> None:
+        out = sys.stderr if self.stream is None else self.stream  # looked up per call: stderr may be replaced
+        phase = event["phase"]
+        if phase == "trial":
+            self.trial, self.total, self.running = event["trial"], event["trials"], True
+            self.trial_start = self.clock()
+        elif phase == "evaluated":
+            self.finished(event["trial"], event["seconds"])
+        elapsed = self.clock() - self.start
+        head = f"\rtrial {self.trial} of 0-{self.total - 1} [{elapsed / 60:5.1f} min ETA {self.left() / 60:.1f} min]"
+        if phase == "gp":
+            out.write(f"{head} training GP on {event['points']} points".ljust(100))
+        elif phase == "optimize":
+            out.write(f"{head} policy step {event['step']}/{event['steps']} objective {event['objective']:.3f}".ljust(100))
+        elif phase == "evaluated":
+            name = event.get("criterion", "upright")
+            passed = event.get("passed", event.get(name, event["upright"]))  # the rollouts meeting the task's criterion
+            out.write(f"{head} evaluated return {event['eval_return']:.3f} ({name} {passed:.0%})".ljust(100) + "\n")
+        out.flush()
 
 
 class SweepProgress:
     """Prints a line after every trial of every worker: the trial's time and return, the time its
     experiment still needs, and the sweep's ETA. The estimates of :mod:`pipps.experiments.budget`
-    are rescaled by how long the finished trials really took (so a machine busy with other work,
-    or a model that is off, corrects itself as the sweep goes)."""
+    are rescaled by how long the finished learned trials really took (so a machine busy with other
+    work, or a model that is off, corrects itself as the sweep goes); random trials, with no model
+    and no policy search, do not rescale them."""
 
     def __init__(self, rows, gflops: float, workers: int, stream=None):
         cold = budget.cache_is_cold()
         self.estimates = {str(path): budget.estimate(cfg, gflops, cold=cold) for cfg, path, _ in rows}
         self.done = {str(path): done for _, path, done in rows}
         self.trials = {str(path): cfg.num_trials for cfg, path, _ in rows}
+        self.random = {str(path): cfg.num_random for cfg, path, _ in rows}
         self.workers = max(workers, 1)
         self.actual = self.predicted = 0.0
         self.start = time.perf_counter()
@@ -94,7 +161,7 @@ class SweepProgress:
         i, n = int(event["trial"]), int(event["trials"])
         seconds = float(event.get("seconds", 0.0))
         est = self.estimates[path]
-        if i < len(est.trials):
+        if self.random[path] <= i < len(est.trials):
             self.actual += seconds
             self.predicted += est.trials[i]
         self.done[path] = i + 1

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -26,7 +27,7 @@ import pytest
 
 import pipps.experiments.loop as loop
 from pipps.cli import main
-from pipps.cli_report import SweepProgress
+from pipps.cli_report import RunProgress, SweepProgress
 from pipps.experiments import budget, preflight
 from pipps.experiments.config import ConfigError, experiment_name, resolve_config
 from pipps.experiments.records import ExperimentResult
@@ -138,6 +139,36 @@ def test_study_bench_and_plot_refuse_before_any_work(tmp_path, capsys, monkeypat
     assert code == 0 and rrd.read_bytes() != b"old recording" and not list(tmp_path.glob(".*tmp*"))
 
 
+def test_run_onto_a_study_file_says_it_is_one_and_a_dry_run_says_what_overwrite_does(fake_loop, tmp_path, capsys):
+    study = tmp_path / "s.h5"
+    with h5py.File(study, "w") as f:  # what pipps study variance writes at its root (no config_json)
+        f.attrs.update(study="variance", schema_version=1, source="x.h5")
+    what = "a variance study file (pipps study variance output), not an experiment result"
+    code, out = cli(capsys, "run", "--quiet", "--resume", "--out", study)
+    assert code == 2 and out.err.strip().endswith(f"--resume: nothing to continue at {study}: {what}"), out.err
+    code, out = cli(capsys, "run", "--quiet", "--preset", "quick", "--out", study)
+    assert code == 2 and f"{study} already holds {what}; --overwrite replaces it" in out.err, out.err
+    code, out = cli(capsys, "run", "--preset", "quick", "--out", study, "--dry-run")
+    assert code == 0 and f"at {study}: {what} (refused without --overwrite)" in out.out
+    assert "KeyError" not in out.out + out.err and "damaged" not in out.out
+    with pytest.raises(ResultError, match="a variance study file"):
+        verify_result(study)
+    result = quick_result(tmp_path)
+    code, out = cli(capsys, "run", "--preset", "quick", "--out", result, "--overwrite", "--dry-run")
+    assert code == 0 and f"at {result}: a complete result of it (--overwrite replaces it)" in out.out
+    assert "refused" not in out.out
+    code, out = cli(capsys, "run", "--preset", "quick", "--out", study, "--overwrite", "--dry-run")
+    assert code == 0 and f"{what} (--overwrite replaces it)" in out.out
+
+
+def test_the_studies_take_results_of_any_task_with_moment_matching(capsys):
+    for args in (["study", "variance", "--help"], ["study", "landscape", "--help"], ["bench", "--help"]):
+        with pytest.raises(SystemExit):
+            main(args)
+        text = " ".join(capsys.readouterr().out.split())
+        assert "cart-pole run" not in text and "on any task with moment matching (cart-pole, unicycle" in text
+
+
 # -- 2. the README's next steps after the quick start ----------------------------------------------------------
 
 
@@ -220,7 +251,16 @@ def test_resume_reads_the_configuration_from_the_file(fake_loop, tmp_path, capsy
     (["sweep", "--table", "9.9"], "argument --table: unknown table '9.9'"),
     (["table", "--table", "9.9"], "argument --table: unknown table '9.9'"),
     (["run", "--k", "1e309"], "argument --k: must be a finite number >= 0"),
-    (["rollout", "--seed", "-1"], "argument --seed: must be an integer >= 0"),
+    (["rollout", "--seed", "-1"], "argument --seed: must be an integer in [0, 2147483647], got -1"),
+    (["rollout", "--seed", "99999999999999999999"], "argument --seed: must be an integer in [0, 2147483647]"),
+    (["run", "--seed", "99999999999999999999", "--dry-run"], "argument --seed: must be an integer in [0, 2147483647]"),
+    (["run", "--seed", "2147483648", "--dry-run"], "argument --seed: must be an integer in [0, 2147483647]"),
+    (["study", "variance", "x", "--seed", "2147483648"], "argument --seed: must be an integer in [0, 2147483647]"),
+    (["bench", "x", "--seed", "2147483648"], "argument --seed: must be an integer in [0, 2147483647]"),
+    (["sweep", "--table", "4.1", "--seed-start", "2147483648", "--dry-run"],
+     "argument --seed-start: must be an integer in [0, 2147483647]"),
+    (["sweep", "--table", "4.1", "--k", "1", "--methods", "tp", "--seeds", "1001", "--dry-run"],
+     "argument --seeds: must be an integer in [1, 1000], got 1001"),
     (["rollout", "--episodes", "10000000"], "argument --episodes: must be an integer in [1, 100000]"),
 ])
 def test_malformed_options_are_refused_by_argparse_naming_the_option(args, needle, capsys):
@@ -247,6 +287,57 @@ def test_particles_beyond_memory_are_refused_before_any_work(fake_loop, tmp_path
     lr = preflight.memory_bytes(resolve_config("thesis", "cartpole_swingup", num_particles=100_000))[0]
     rp = preflight.memory_bytes(resolve_config("thesis", "cartpole_swingup", method="rp", num_particles=100_000))[0]
     assert lr > 5 * rp
+
+
+def test_seeds_are_bounded_by_what_every_draw_can_start_from(tmp_path, capsys):
+    from pipps.demo import random_policy_rollouts
+    from pipps.experiments.config import MAX_SEED
+    from pipps.experiments.state import trial_keys
+
+    code, out = cli(capsys, "sweep", "--table", "4.1", "--k", "1", "--methods", "tp", "--seed-start", MAX_SEED,
+                    "--seeds", 2, "--dry-run", "--out", tmp_path / "sw")
+    assert code == 2 and f"--seed-start {MAX_SEED} with --seeds 2 reaches seed {MAX_SEED + 1}; seeds must lie in " \
+        f"[0, {MAX_SEED}]" in out.err
+    with pytest.raises(ConfigError, match=f"seed: must be an integer in \\[0, {MAX_SEED}\\]"):
+        resolve_config("quick", "cartpole_swingup", seed=MAX_SEED + 1)
+    # the largest seed works where seeds are used: the experiment's keys, the rollouts, the studies' offsets
+    import jax
+
+    cfg = resolve_config("quick", "cartpole_swingup", seed=MAX_SEED)
+    for x64 in (True, False):
+        with jax.enable_x64(x64):
+            assert all(np.asarray(k).size for k in trial_keys(cfg, 3))
+            jax.random.fold_in(jax.random.PRNGKey(MAX_SEED + 13), 10_000)
+    assert random_policy_rollouts("cartpole_swingup", "thesis", 1.0, "random-actions", 1, MAX_SEED).returns.shape == (1,)
+    with pytest.raises(OverflowError):  # what the bound is for: a seed past int64 fails in the middle of a run
+        jax.random.PRNGKey(99999999999999999999)
+
+
+def test_the_memory_check_names_the_setting_behind_its_largest_term(fake_loop, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(preflight, "machine_memory", lambda: 16 * 2**30)
+    for setting, named, advice in (("eval_rollouts=1000000000", "--set eval_rollouts", "use fewer evaluation rollouts"),
+                                   ("horizon=100000000", "--set horizon", "use a shorter horizon")):
+        code, out = cli(capsys, "run", "--set", setting, "--dry-run", "--out", tmp_path / "x.h5")
+        assert code == 2 and f"{named}: the experiment needs about" in out.err, out.err
+        assert out.err.strip().endswith(f"more than this machine's 16 GiB; {advice}") and "--particles" not in out.err
+        code, out = cli(capsys, "sweep", "--table", "4.1", "--k", "1", "--methods", "tp", "--seeds", "1",
+                        "--set", setting, "--dry-run", "--out", tmp_path / "sw")
+        assert code == 2 and f"{named}: the experiment needs about" in out.err, out.err
+    code, out = cli(capsys, "run", "--set", "eval_rollouts=1000000000", "--dry-run", "--out", tmp_path / "x.h5")
+    assert "(1,000,000,000 evaluation rollouts of 31 states)" in out.err
+    code, out = cli(capsys, "run", "--method", "rp", "--particles", 1_000_000_000, "--set", "horizon=1000",
+                    "--dry-run", "--out", tmp_path / "x.h5")
+    assert "--particles and --set horizon: " in out.err and out.err.strip().endswith(
+        "use fewer particles or a shorter horizon")
+    # nothing raised above the preset: the largest term's first setting (a thesis run's is its GP training)
+    with pytest.raises(ConfigError, match=r"^--set num_inducing/fitc_threshold: .*\(GP training on 300 points\).* "
+                                          r"use a smaller GP \(--set num_inducing=…, fitc_threshold=…\)$"):
+        preflight.check_memory(resolve_config("thesis", "cartpole_swingup"), available=2**20)
+    with pytest.raises(ConfigError, match=r"^--set num_inducing/fitc_threshold: .*PILCO's moment matching"):
+        preflight.check_memory(resolve_config("thesis", "cartpole_swingup", method="pilco"), available=2**10)
+    with pytest.raises(ConfigError, match=r"^--set num_inducing/fitc_threshold and --set num_learned: .*GP training"):
+        preflight.check_memory(resolve_config("thesis", "cartpole_swingup", num_learned=100_000,
+                                              fitc_threshold=10_000_000), available=2**34)
 
 
 def test_the_memory_model_follows_xla_within_its_stated_margin():
@@ -418,12 +509,90 @@ def test_sweep_progress_gives_an_eta_after_every_trial():
     stream = io.StringIO()
     show = SweepProgress([(c, f"/r/s{c.seed}.h5", 0) for c in cfgs], budget.REFERENCE_GFLOPS, 2, stream=stream)
     est = budget.estimate(cfgs[0], budget.REFERENCE_GFLOPS)
-    show({"phase": "evaluated", "trial": 0, "trials": 16, "seconds": 2 * est.trials[0], "eval_return": 29.9,
+    show({"phase": "evaluated", "trial": 0, "trials": 16, "seconds": 20 * est.trials[0], "eval_return": 29.9,
           "path": "/r/s0.h5", "cpus": [1], "pid": 7})
     line = stream.getvalue()
     assert line.startswith("[cpu 1] s0.h5: trial 0 of 0-15 done in") and "return 29.90" in line and "ETA" in line
-    assert show.factor() == pytest.approx(2.0)  # twice as slow as the model: the ETA follows
-    assert show.left() == pytest.approx(2.0 * (est.remaining(1) + est.total) / 2)
+    # the random trial 0 (no model, no policy search) says nothing of the learned trials: the estimate stands
+    assert show.factor() == 1.0 and show.left() == pytest.approx((est.remaining(1) + est.total) / 2)
+    show({"phase": "evaluated", "trial": 1, "trials": 16, "seconds": 2 * est.trials[1], "path": "/r/s0.h5"})
+    assert show.factor() == pytest.approx(2.0)  # a learned trial twice as slow as the model: the ETA follows
+    assert show.left() == pytest.approx(2.0 * (est.remaining(2) + est.total) / 2)
+
+
+class Clock:
+    """A clock the test moves."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def trial_events(show, clock, i, n, seconds):
+    """Trial ``i`` of ``n`` as the loop reports it, taking ``seconds``."""
+    show(dict(phase="trial", trial=i, trials=n))
+    clock.now += seconds
+    show(dict(phase="evaluated", trial=i, trials=n, eval_return=1.0, upright=1.0, seconds=seconds))
+
+
+def test_run_eta_is_the_cost_estimate_until_a_learned_trial_finishes_then_measured():
+    cfg = resolve_config("quick", "cartpole_swingup", num_learned=5)  # trials 0-5, trial 0 random
+    est = budget.estimate(cfg, budget.REFERENCE_GFLOPS)
+    clock, out = Clock(), io.StringIO()
+    show = RunProgress(est, cfg.num_random, out, clock=clock)
+    show(dict(phase="trial", trial=0, trials=6))
+    assert show.left() == pytest.approx(est.total)  # before anything is measured: the estimate printed
+    clock.now += 0.1 * est.trials[0]
+    assert show.left() == pytest.approx(est.total - 0.1 * est.trials[0])  # the running trial counts down
+    clock.now += 0.01 * est.trials[0]
+    show(dict(phase="evaluated", trial=0, trials=6, eval_return=1.0, upright=1.0, seconds=0.11 * est.trials[0]))
+    assert show.left() == pytest.approx(est.remaining(1))  # a fast random trial 0 does not rescale it
+    show(dict(phase="trial", trial=1, trials=6))
+    clock.now += 0.5 * est.trials[1]
+    assert show.left() == pytest.approx(est.remaining(1) - 0.5 * est.trials[1])
+    clock.now += 2.5 * est.trials[1]
+    assert show.left() == pytest.approx(est.remaining(2))  # overdue: the trial's own share is spent, no less
+    show(dict(phase="evaluated", trial=1, trials=6, eval_return=1.0, upright=1.0, seconds=3 * est.trials[1]))
+    assert show.left() == pytest.approx(3 * est.remaining(2))  # measured: three times the model
+    for i in range(2, 6):
+        trial_events(show, clock, i, 6, 3 * est.trials[i])
+    last = out.getvalue().splitlines()[-1]
+    assert "trial 5 of 0-5" in last and "ETA 0.0 min" in last and show.left() == 0.0
+
+
+def test_run_eta_after_resume_counts_the_trials_kept_as_done():
+    cfg = resolve_config("quick", "cartpole_swingup", num_learned=5)
+    est = budget.estimate(cfg, budget.REFERENCE_GFLOPS)
+    clock, out = Clock(), io.StringIO()
+    show = RunProgress(est, cfg.num_random, out, clock=clock)  # resumed at trial 3 of 0-5
+    show(dict(phase="trial", trial=3, trials=6))
+    assert show.left() == pytest.approx(est.remaining(3))
+    clock.now += 2 * est.trials[3]
+    show(dict(phase="evaluated", trial=3, trials=6, eval_return=1.0, upright=1.0, seconds=2 * est.trials[3]))
+    assert show.left() == pytest.approx(2 * est.remaining(4))  # trials 4 and 5 at the measured rate
+    trial_events(show, clock, 4, 6, 2 * est.trials[4])
+    trial_events(show, clock, 5, 6, 2 * est.trials[5])
+    assert out.getvalue().splitlines()[-1].split("]")[0].endswith("ETA 0.0 min")
+
+
+def test_bare_run_counts_its_eta_down_from_the_estimate_it_printed(tmp_path, capsys, monkeypatch):
+    def reporting_run(cfg, *, progress=None, on_trial=None, resume=None):  # each trial in a millisecond
+        for i in range(cfg.num_trials):
+            progress(dict(phase="trial", trial=i, trials=cfg.num_trials))
+            progress(dict(phase="evaluated", trial=i, trials=cfg.num_trials, eval_return=1.0, upright=1.0,
+                          seconds=1e-3))
+        return fake_run_experiment(cfg, on_trial=on_trial, resume=resume)
+
+    monkeypatch.setattr(loop, "run_experiment", reporting_run)
+    monkeypatch.chdir(tmp_path)
+    code, out = cli(capsys, "run")
+    cost = float(re.search(r"estimated cost: ([0-9.]+) core-minutes", out.err).group(1))
+    etas = [float(m) for m in re.findall(r"ETA ([0-9.]+) min", out.err)]
+    assert code == 0 and len(etas) == 16 and cost > 1
+    assert etas[0] == pytest.approx(cost, abs=0.11)  # after the random trial 0: the estimate, not its 1 ms
+    assert etas[-1] == 0.0
 
 
 # -- 7. caveats where numbers are weak ---------------------------------------------------------------------------

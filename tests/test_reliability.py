@@ -20,7 +20,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import pipps.experiments.loop as loop
-from pipps.cli import _progress_printer, main
+from pipps.cli import main
+from pipps.cli_report import RunProgress
+from pipps.experiments import budget
 from pipps.experiments.config import (
     config_hash,
     departures,
@@ -494,7 +496,8 @@ def test_progress_counts_trials_from_zero_like_trial_and_resume():
     import io
 
     out = io.StringIO()
-    show = _progress_printer(out)
+    cfg = resolve_config("quick", "cartpole_swingup", num_learned=5)
+    show = RunProgress(budget.estimate(cfg, budget.REFERENCE_GFLOPS), cfg.num_random, out)
     show(dict(phase="trial", trial=0, trials=6))
     show(dict(phase="evaluated", trial=0, trials=6, eval_return=1.0, upright=1.0, seconds=1.0))
     assert "trial 0 of 0-5" in out.getvalue()

@@ -57,6 +57,11 @@ from pipps.experiments.methods import METHODS, Method
 
 PRESET_NAMES = ("thesis", "pilco", "quick")
 
+#: The largest seed. Every draw of an experiment starts from ``jax.random.PRNGKey(seed)``, which
+#: refuses integers beyond int64 (``OverflowError``), and the studies key their draws on small
+#: offsets of theirs; seeds of 31 bits fit int32 and int64 alike, with or without JAX's 64-bit mode.
+MAX_SEED = 2**31 - 1
+
 
 class ConfigError(ValueError):
     """A configuration value is invalid; the message names the setting."""
@@ -222,6 +227,7 @@ def validate(c: ExperimentConfig) -> None:
     for name in ("num_random", "store_particles", "seed"):
         v = getattr(c, name)
         _need(isinstance(v, int) and not isinstance(v, bool) and v >= 0, name, f"must be an integer >= 0, got {v!r}")
+    _need(c.seed <= MAX_SEED, "seed", f"must be an integer in [0, {MAX_SEED}], got {c.seed!r}")
     _need(isinstance(c.num_particles, int) and c.num_particles >= 2, "num_particles",
           f"must be an integer >= 2 (particles estimate variances), got {c.num_particles!r}")
     _need(c.num_random >= 1, "num_random", "at least one random trial is needed to train the first model")

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import os
+from typing import NamedTuple
 
 import numpy as np
 
@@ -74,8 +75,29 @@ def evaluation_bytes(estimator: str | None, particles: int, horizon: int, size: 
     return BYTES * elements
 
 
-def memory_bytes(cfg: ExperimentConfig, seeds: int = 1) -> tuple[float, str]:
-    """The estimated peak bytes of ``cfg`` (``seeds`` of them batched together), and what dominates."""
+class MemoryTerm(NamedTuple):
+    """One of the largest arrays :func:`memory_bytes` counts: what it is, and the settings that grow
+    it (keys of :data:`SHRINK`), first the one a message names when the configuration raises none of
+    them above its preset."""
+
+    what: str
+    settings: tuple[str, ...]
+
+
+#: per setting (or pair of settings, ``gp``) that grows a memory term: how to spell it on the
+#: command line (``None``: the particles option the caller names) and what to do about it
+SHRINK = {
+    "num_particles": (None, "fewer particles"),
+    "horizon": ("--set horizon", "a shorter horizon"),
+    "eval_rollouts": ("--set eval_rollouts", "fewer evaluation rollouts"),
+    "gp": ("--set num_inducing/fitc_threshold", "a smaller GP (--set num_inducing=…, fitc_threshold=…)"),
+    "num_learned": ("--set num_learned", "fewer learned trials"),
+}
+
+
+def memory_bytes(cfg: ExperimentConfig, seeds: int = 1) -> tuple[float, MemoryTerm]:
+    """The estimated peak bytes of ``cfg`` (``seeds`` of them batched together), and the term that
+    dominates them."""
     from pipps.experiments.state import make_experiment_task
 
     task = make_experiment_task(cfg)
@@ -83,41 +105,73 @@ def memory_bytes(cfg: ExperimentConfig, seeds: int = 1) -> tuple[float, str]:
     T = int(cfg.horizon or problem.horizon)
     E, D, Dz = problem.model_dim, problem.model_dim, problem.gp_input_dim
     points = cfg.num_trials * T  # the most data the GP can hold
-    size = cfg.num_inducing if points > cfg.fitc_threshold else points
+    sparse = points > cfg.fitc_threshold
+    size = cfg.num_inducing if sparse else points
     full = min(points, cfg.fitc_threshold)  # the largest full GP trained
     features = (cfg.num_basis if cfg.policy != "linear" else 1) * problem.policy_input_dim
+    model = ("gp",) if sparse else ("gp", "num_learned", "horizon")  # what sets the GP's size M
     if cfg.is_pilco:
-        search, what = evaluation_bytes(None, 0, T, size, state_dim=D, input_dim=Dz, outputs=E), \
-            f"PILCO's moment matching at M = {size}"
+        search = evaluation_bytes(None, 0, T, size, state_dim=D, input_dim=Dz, outputs=E)
+        what = MemoryTerm(f"PILCO's moment matching at M = {size}", model)
     else:
         est = cfg.method_spec.estimator
         search = evaluation_bytes(est, cfg.num_particles, T, size, state_dim=D, input_dim=Dz, outputs=E,
                                   features=features)
-        what = f"{cfg.num_particles:,} particles × {T} steps at M = {size}" + (
-            "" if est == "rp" else f", {cfg.num_particles:,}² importance weights")
+        what = MemoryTerm(f"{cfg.num_particles:,} particles × {T:,} steps at M = {size}"
+                          + ("" if est == "rp" else f", {cfg.num_particles:,}² importance weights"),
+                          tuple(dict.fromkeys(("num_particles", "horizon", *model))))
     gp = BYTES * GP_TRAINING_PER_ENTRY * E * max(full, size) ** 2
     rollouts = BYTES * 4.0 * cfg.eval_rollouts * (T + 1) * task.simulator.sim_dim
-    parts = {what: search, f"GP training on {max(full, size)} points": gp,
-             f"{cfg.eval_rollouts} evaluation rollouts": rollouts}
+    parts = {what: search, MemoryTerm(f"GP training on {max(full, size)} points", model): gp,
+             MemoryTerm(f"{cfg.eval_rollouts:,} evaluation rollouts of {T + 1:,} states", ("eval_rollouts", "horizon")):
+             rollouts}
     top = max(parts, key=parts.get)
     return seeds * float(sum(parts.values())), top
+
+
+def _grown(cfg: ExperimentConfig, settings: tuple[str, ...]) -> tuple[str, ...]:
+    """Those of ``settings`` (keys of :data:`SHRINK`) that ``cfg`` sets above its experiment preset's
+    value (all of them when the preset cannot be rebuilt)."""
+    from pipps.experiments.config import protocol_config
+    from pipps.experiments.state import make_experiment_task
+
+    try:
+        base = protocol_config(cfg)
+    except ConfigError:
+        return settings
+
+    def values(c: ExperimentConfig, name: str) -> tuple:
+        if name == "gp":
+            return c.num_inducing, c.fitc_threshold
+        if name == "horizon":
+            return (int(c.horizon or make_experiment_task(c).problem.horizon),)
+        return (getattr(c, name),)
+
+    return tuple(n for n in settings if any(a > b for a, b in zip(values(cfg, n), values(base, n))))
 
 
 def gib(n: float) -> str:
     return f"{n / 2**30:.3g} GiB" if n < 2**50 else f"{n:.2g} bytes"
 
 
-def check_memory(cfg: ExperimentConfig, *, seeds: int = 1, processes: int = 1, option: str = "--particles",
+def check_memory(cfg: ExperimentConfig, *, seeds: int = 1, processes: int = 1, particles: str = "--particles",
                  available: int | None = None) -> float:
     """Raise :class:`ConfigError` when ``processes`` experiments (each ``seeds`` batched) would need
-    more than :data:`MEMORY_FRACTION` of the machine's memory; return the estimate (bytes, one process)."""
-    need, what = memory_bytes(cfg, seeds)
+    more than :data:`MEMORY_FRACTION` of the machine's memory; return the estimate (bytes, one process).
+
+    The message names the settings behind the largest term that the configuration raises above its
+    preset (``particles`` spells the particles option), or, where it raises none, the term's first,
+    and says what shrinks the term."""
+    need, top = memory_bytes(cfg, seeds)
     available = machine_memory() if available is None else available
     if available is not None and processes * need > MEMORY_FRACTION * available:
+        named = _grown(cfg, top.settings)
+        advice = [SHRINK[name][1] for name in (named or top.settings)]
+        options = [SHRINK[name][0] or particles for name in (named or top.settings[:1])]
         many = f"{processes} experiments at once × " if processes > 1 else ""
-        raise ConfigError(f"{option}: the experiment needs about {many}{gib(need)} for its largest arrays "
-                          f"({what}), more than this machine's {gib(available)}; use fewer particles or a smaller "
-                          "GP (--set num_inducing=…, fitc_threshold=…)")
+        raise ConfigError(f"{' and '.join(options)}: the experiment needs about {many}{gib(need)} for its largest "
+                          f"arrays ({top.what}), more than this machine's {gib(available)}; use "
+                          + (", ".join(advice[:-1]) + " or " + advice[-1] if len(advice) > 1 else advice[0]))
     return need
 
 
@@ -168,8 +222,7 @@ def check_experiment(cfg: ExperimentConfig, *, seeds: int = 1, processes: int = 
         raise ConfigError(f"method: {err}") from None
     horizon = int(cfg.horizon or problem.horizon)
     check_noise(cfg.task, cfg.preset, cfg.k, cfg.num_trials * horizon, option=k)
-    option = particles if not cfg.is_pilco else "--set num_inducing/fitc_threshold"
-    return check_memory(cfg, seeds=seeds, processes=processes, option=option)
+    return check_memory(cfg, seeds=seeds, processes=processes, particles=particles)
 
 
 def check_study(cfg: ExperimentConfig, size: int, particles: int, estimators, *, option: str = "--particles",

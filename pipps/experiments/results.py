@@ -198,6 +198,13 @@ def write_result(path: str | os.PathLike, result: ExperimentResult) -> None:
             tmp.unlink()
 
 
+def study_file(kind: str) -> str:
+    """What a file of ``pipps study`` or ``pipps bench`` (its ``study`` attribute: ``kind``) is, for a
+    message where an experiment result was expected."""
+    command = "pipps bench" if kind == "bench" else f"pipps study {kind}"
+    return f"a {kind} study file ({command} output), not an experiment result"
+
+
 def verify_result(path: Path) -> tuple[str, ExperimentConfig, int]:
     """Check a result file's integrity whatever its status: (status, configuration, trials stored).
 
@@ -208,6 +215,8 @@ def verify_result(path: Path) -> tuple[str, ExperimentConfig, int]:
         raise ResultError(f"{path}: no such result file")
     try:
         with h5py.File(path, "r") as f:
+            if "study" in f.attrs and "config_json" not in f.attrs:
+                raise ResultError(f"{path}: {study_file(str(f.attrs['study']))}")
             version = f.attrs.get("schema_version")
             if version != SCHEMA_VERSION:
                 raise ResultError(f"{path}: schema version {version!r}, expected {SCHEMA_VERSION}")
