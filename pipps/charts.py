@@ -659,8 +659,6 @@ def recording(out: str | Path, application_id: str, layout) -> Iterator:
     """What to draw on, written to ``out`` on exit: for an ``.svg`` name, an :class:`SvgCanvas` of the
     figure ``layout``; otherwise a rerun recording stream saving to ``out`` (``.rrd``) with
     ``layout``'s blueprint (a :class:`Figure`'s, or a blueprint given as is), flushed and closed."""
-    import rerun as rr
-
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix.lower() == ".svg":
@@ -670,6 +668,8 @@ def recording(out: str | Path, application_id: str, layout) -> Iterator:
         yield canvas
         canvas.write(out)
         return
+    import rerun as rr
+
     rec = rr.RecordingStream(application_id)
     rr.save(out, default_blueprint=blueprint(layout) if isinstance(layout, Figure) else layout, recording=rec)
     try:
