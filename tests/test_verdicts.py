@@ -109,6 +109,37 @@ def test_resimulation_reproduces_a_stored_evaluation_exactly_and_judges_it():
         Resimulator().trial(result, 0)
 
 
+def test_resimulation_at_another_noise_level_changes_only_the_noise_scale(tmp_path, capsys):
+    """``k`` observes the same true system at another noise multiplier with the same keys: the
+    experiment's own k reproduces the default fresh rollouts exactly, a vanishing k approaches k = 0
+    continuously, and k = 1 differs from both (so ``k`` reaches the program)."""
+    import importlib.util
+
+    path = RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5"
+    result, resim = read_result(path), Resimulator()
+    last = len(result.trials) - 1
+    own = resim.trial(result, last, fresh=4, seed=3)
+    np.testing.assert_array_equal(resim.trial(result, last, fresh=4, seed=3, k=result.config.k)[0], own[0])
+    zero = resim.trial(result, last, fresh=4, seed=3, k=0.0)[0]
+    tiny = resim.trial(result, last, fresh=4, seed=3, k=1e-16)[0]
+    np.testing.assert_allclose(tiny, zero, rtol=0, atol=1e-5)  # noise scale 1e-8 of the base: a perturbation
+    assert np.max(np.abs(own[0] - zero)) > 1e-3
+    spec = importlib.util.spec_from_file_location("observation_noise_eval",
+                                                  RESULTS.parents[1] / "experiments/observation_noise_eval.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    out = tmp_path / "noise.json"
+    script.main([str(path), "--rollouts", "4", "--key-seed", "3", "--out", str(out)])
+    import json
+
+    row = json.loads(out.read_text())["rows"][0]
+    assert row["at"]["1"]["mean_return"] == pytest.approx(float(np.mean(own[0])), abs=1e-12)
+    assert row["at"]["0"]["mean_return"] == pytest.approx(float(np.mean(zero)), abs=1e-12)
+    assert "k=0: <15" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        script.main([str(path), "--out", str(out)])  # an existing file is refused
+
+
 def test_the_calibration_script_lists_the_policies_the_two_rules_disagree_on(capsys):
     import importlib.util
 

@@ -40,12 +40,14 @@ class Resimulator:
     def __init__(self):
         self._programs: dict = {}
 
-    def _program(self, cfg, balance=None):
+    def _program(self, cfg, balance=None, k=None):
         import jax
 
         from pipps.experiments.programs import evaluate_rollouts, success_rule
         from pipps.experiments.state import make_experiment_task
 
+        if k is not None:  # the same true system observed at another noise level
+            cfg = cfg.replace(k=k)
         if balance is not None:  # the cart-pole's criterion under other bounds
             steps, angle, position = balance
             cfg = cfg.replace(balance_steps=steps, balance_angle=angle, balance_position=position)
@@ -59,11 +61,15 @@ class Resimulator:
             self._programs[key] = run if task.host_stepped else jax.jit(run)
         return self._programs[key]
 
-    def trial(self, result, index: int, *, fresh: int | None = None, seed: int = 0, balance=None):
+    def trial(self, result, index: int, *, fresh: int | None = None, seed: int = 0, balance=None,
+              k: float | None = None):
         """``(returns, upright, criterion)`` (numpy) of trial ``index``'s policy: its own evaluation
         rollouts, or ``fresh`` rollouts with keys from ``seed`` (independent of the experiment's);
         ``criterion`` is the task's rule per rollout. ``balance = (steps, angle, position)`` judges
-        the cart-pole with other bounds than the configuration's."""
+        the cart-pole with other bounds than the configuration's; ``k`` observes the true system at
+        another observation-noise multiplier than the experiment's (``k = 0``: the policy sees the
+        state). With ``fresh``, rollouts with the same ``seed`` share their keys across ``k`` (and
+        across policies), so differences between them are paired."""
         import jax
         import jax.numpy as jnp
 
@@ -75,5 +81,5 @@ class Resimulator:
             keys = evaluation_keys(cfg, index)
         else:
             keys = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(seed), 1_000_003 + index), fresh)
-        out = self._program(cfg, balance)(keys, jnp.asarray(trial.policy))
+        out = self._program(cfg, balance, k)(keys, jnp.asarray(trial.policy))
         return tuple(np.asarray(a) for a in jax.device_get(out))
