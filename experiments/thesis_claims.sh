@@ -27,6 +27,10 @@ queue=(
   # Angle Cost GTP of group 3); they run on the CPU because no GPU may be lent
   "--table 4.2 --k 1 --methods pilco --seeds 5"
   "--table 4.2 --k 1 --methods tp --seeds 5"
+  # PILCO's Tip Cost policies balance without observation noise and lose the pole with it
+  # (docs/results.md, claim 3): the same cell with PILCO V0.9's policy-input noise term, beside the
+  # Table 4.1 cells in the sibling folder pilco-noise/
+  "--table 4.2 --k 1 --methods pilco --seeds 5 --set pilco_policy_noise=true --out {parent}/pilco-noise"
   "--table 4.3 --k 1 --methods gtp --seeds 5"
   "--table 4.1 --k 1 --methods rp_fs,gr_fs --seeds 10"
   "--table 4.2 --k 1 --methods pilco --seeds 10"
@@ -43,10 +47,12 @@ queue=(
   "--table del --seeds 5"
 )
 worker() {
-  local core=$1
+  local core=$1 q
   for q in "${queue[@]}"; do
+    # an entry with its own --out names a folder beside OUT ({parent}); the others write into OUT
+    if [[ $q == *"--out "* ]]; then q=${q//\{parent\}/$(dirname "$out")}; else q="$q --out $out"; fi
     # shellcheck disable=SC2086
-    taskset -c "$core" pipps sweep $q --jobs 1 --out "$out"
+    taskset -c "$core" pipps sweep $q --jobs 1
   done
 }
 if [ -n "${CORE:-}" ]; then worker "$CORE"; exit; fi
