@@ -32,13 +32,14 @@ import pipps
 
 
 def measure(path: str, resim, ks: list[float | None], rollouts: int, key_seed: int, trial: int | None) -> dict:
+    from pipps.experiments.config import canonical
     from pipps.experiments.results import read_result
 
     result = read_result(path)
     cfg = result.config
     learned = [t.index for t in result.trials if t.kind == "learned"]
     trial = learned[-1] if trial is None else trial
-    row = dict(file=str(path), task=cfg.task, cost=cfg.cost, method=cfg.method, seed=int(cfg.seed), k=float(cfg.k),
+    row = dict(file=str(path), task=cfg.task, cost=str(canonical(cfg)["cost"]), method=cfg.method, seed=int(cfg.seed), k=float(cfg.k),
                trial=int(trial), threshold=float(cfg.success_threshold), rollouts=rollouts, at={})
     for k in ks:
         k = float(cfg.k) if k is None else k
