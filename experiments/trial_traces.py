@@ -9,6 +9,12 @@ docs/estimator-variance.md, the library's and the thesis' k_LR rules while learn
 
 ``--summary`` prints one line per file instead: the final return and the largest per-trial median
 gradient norm with the trial it occurred in (RP's exploding gradients in chaos, docs/results.md).
+``--particles`` prints, per learned trial, where the model's stored particles put the pole at a few
+time steps (quantiles of the unwrapped angle θ, upright at ±π, ±3π, …) and the fraction of them
+within 0.3 rad of upright at the last step: a prediction that splits between the two swing-up
+directions (the Tip Cost's multi-modality, docs/results.md claim 3) shows as quantiles on both sides.
+
+    python experiments/trial_traces.py --particles results/thesis/cartpole_swingup_tip_k1_tp_thesis_s2.h5
 
 Unfinished files are read too (no checksum verification). Cart-pole state order [x, v, ω, θ].
 """
@@ -39,9 +45,26 @@ def summary(paths) -> None:
         print(f"| {path} | {cfg.method} | {cfg.seed} | {result.final_return:.2f} | {norms[i]:.2g} ({learned[i].index}) |")
 
 
+def particles(paths, steps=(10, 15, 20, 30)) -> None:
+    for path in paths:
+        print(path)
+        for t in read_result(path, verify=False).trials:
+            if t.kind != "learned" or getattr(t.predicted, "particles", None) is None:
+                continue
+            theta = np.asarray(t.predicted.particles)[..., 3]  # (T+1, P)
+            upright = np.abs(np.remainder(theta[-1], 2 * np.pi) - np.pi) < 0.3
+            parts = [f"step {s}: {' '.join(f'{q:+.1f}' for q in np.quantile(theta[s], [0, 0.25, 0.5, 0.75, 1]))}"
+                     for s in steps if s < theta.shape[0]]
+            print(f"  trial {t.index:03d}: θ quantiles (min q25 median q75 max)  " + "  ".join(parts)
+                  + f"  upright at the end {np.mean(upright):.2f} of {theta.shape[1]}")
+
+
 def main(paths) -> None:
     if paths and paths[0] == "--summary":
         summary(paths[1:])
+        return
+    if paths and paths[0] == "--particles":
+        particles(paths[1:])
         return
     for path in paths:
         print(path)
