@@ -199,13 +199,18 @@ def chart(path: str, title: str, x: Axis, y: Axis, size: tuple[float, float] = (
 # -- drawing ----------------------------------------------------------------------------------------
 
 
-def _text(rec, path: str, positions, labels, color=BLACK) -> None:
-    """Labels centred on ``positions`` (view coordinates)."""
+def _text(rec, path: str, positions, labels, color=BLACK, *, left: bool = False) -> None:
+    """Labels centred on ``positions`` (view coordinates); with ``left``, ``positions`` are where the
+    labels begin (a legend's text after its sample: an SVG anchors it there, the viewer, which only
+    centres labels, at the estimated centre)."""
     positions = np.asarray(positions, dtype=float).reshape(-1, 2)
     if isinstance(rec, SvgCanvas):
-        rec.text(path, positions, labels, color)
+        rec.text(path, positions, labels, color, anchor="start" if left else "middle")
         return
     import rerun as rr
+
+    if left:
+        positions = positions + np.array([[CHAR_WIDTH * len(str(t)) / 2, 0.0] for t in labels])
 
     positions = positions - [0.0, TEXT_HEIGHT / 2 + LABEL_DROP]  # a viewer label hangs below its point
     rec.log(path, rr.Points2D(positions, radii=[0.0], labels=list(labels), colors=[color], show_labels=True,
@@ -466,6 +471,11 @@ def _entry_width(k: Key) -> float:
     return 34.0 + CHAR_WIDTH * len(k.label) + 24.0
 
 
+def legend_width(keys: Sequence[Key]) -> float:
+    """The narrowest legend strip that holds each of ``keys`` on a row of its own (0 without keys)."""
+    return max((_entry_width(k) for k in keys), default=-20.0) + 20.0
+
+
 def _legend_rows(keys: Sequence[Key], width: float) -> list[list[Key]]:
     rows: list[list[Key]] = [[]]
     used = 0.0
@@ -502,7 +512,7 @@ def draw_legend(rec, c: Chart, keys: Sequence[Key]) -> None:
                 _dots(rec, f"{path}_point", [mid], k.color, -3.5)
             else:
                 raise ValueError(f"legend style {k.style!r}")
-            _text(rec, f"{path}_label", [[x + 34.0 + CHAR_WIDTH * len(k.label) / 2, y]], [k.label])
+            _text(rec, f"{path}_label", [[x + 34.0, y]], [k.label], left=True)
             x += _entry_width(k)
 
 
@@ -524,14 +534,15 @@ class Figure(NamedTuple):
 
 
 def figure(charts: Sequence[Chart], columns: int, keys: Sequence[Key] = (), legend_path: str | None = None) -> Figure:
-    """A figure of ``charts``; with ``keys``, a legend strip as wide as the grid (at ``legend_path``)."""
+    """A figure of ``charts``; with ``keys``, a legend strip as wide as the grid (at ``legend_path``),
+    or wider where one entry is wider than the grid (the grid is then centred above it)."""
     charts = list(charts)
     if not charts:
         raise ValueError("a figure needs at least one chart")
     legend = None
     if keys:
         path = legend_path or f"{charts[0].path.split('/')[0]}/legend"
-        legend = legend_chart(path, keys, columns * charts[0].size[0])
+        legend = legend_chart(path, keys, max(columns * charts[0].size[0], legend_width(keys)))
     return Figure(charts, columns, legend, list(keys))
 
 
@@ -567,7 +578,7 @@ def blueprint(fig: Figure):
 def size(fig: Figure) -> str:
     """The window size ``WxH`` at which the figure renders at its nominal layout."""
     rows = math.ceil(len(fig.charts) / fig.columns)
-    w = fig.columns * fig.charts[0].size[0]
+    w = max(fig.columns * fig.charts[0].size[0], fig.legend.size[0] if fig.legend is not None else 0.0)
     h = rows * fig.charts[0].size[1] + (fig.legend.size[1] if fig.legend is not None else 0.0)
     return f"{int(round(w))}x{int(round(h))}"
 
@@ -583,11 +594,13 @@ class SvgCanvas:
 
     def __init__(self, fig: Figure):
         w, h = fig.charts[0].size
-        self.places = {c.path: (i % fig.columns * w, i // fig.columns * h, c.size[1]) for i, c in enumerate(fig.charts)}
+        self.width = max(fig.columns * w, fig.legend.size[0] if fig.legend is not None else 0.0)
+        left = (self.width - fig.columns * w) / 2  # a grid narrower than its legend sits centred above it
+        self.places = {c.path: (left + i % fig.columns * w, i // fig.columns * h, c.size[1])
+                       for i, c in enumerate(fig.charts)}
         rows = math.ceil(len(fig.charts) / fig.columns)
         if fig.legend is not None:
             self.places[fig.legend.path] = (0.0, rows * h, fig.legend.size[1])
-        self.width = fig.columns * w
         self.height = rows * h + (fig.legend.size[1] if fig.legend is not None else 0.0)
         self._items: list[tuple[float, int, str]] = []
 
@@ -625,11 +638,12 @@ class SvgCanvas:
             if np.isfinite(x) and np.isfinite(y):
                 self._add(order, f'<circle cx="{x:.2f}" cy="{y:.2f}" r="{abs(radius):.2f}" fill="{_svg_color(color)}"/>')
 
-    def text(self, path: str, positions, labels, color) -> None:
+    def text(self, path: str, positions, labels, color, anchor: str = "middle") -> None:
         from xml.sax.saxutils import escape
 
+        where = "" if anchor == "middle" else f' text-anchor="{anchor}"'  # the group's default is middle
         for (x, y), label in zip(self._place(path, positions), labels):
-            self._add(100.0, f'<text x="{x:.2f}" y="{y:.2f}" fill="{_svg_color(color)}">{escape(str(label))}</text>')
+            self._add(100.0, f'<text x="{x:.2f}" y="{y:.2f}"{where} fill="{_svg_color(color)}">{escape(str(label))}</text>')
 
     def write(self, out: str | Path) -> Path:
         body = "\n".join(item for _, _, item in sorted(self._items))

@@ -445,6 +445,34 @@ def test_svg_places_each_panel_in_the_grid_and_the_legend_below(tmp_path):
     assert len(lines) > 10  # box, ticks, grid
 
 
+def test_a_legend_entry_wider_than_the_grid_widens_the_figure_and_centres_the_grid(tmp_path):
+    """One narrow panel and a long key (Table 4.2's cells figure has two k values and this key): the
+    legend strip grows to hold the entry, the page with it, and the panel sits centred above."""
+    c = ch.chart("f/p", "p", ch.Axis("x", 0.0, 10.0), ch.Axis("y", 0.0, 1.0), (300.0, 240.0))
+    long = ch.Key("ours: fraction of rollouts with return < threshold, 95 % interval over seeds (label: seeds)",
+                  (90, 90, 90), "interval")
+    fig = ch.figure([c], 1, [ch.Key("TP", (0, 0, 200), "interval"), long])
+    need = ch.legend_width(fig.keys)
+    assert need > 300.0 and fig.legend.size[0] == need and ch.size(fig).startswith(f"{int(round(need))}x")
+    with ch.recording(tmp_path / "w.svg", "test", fig) as rec:
+        ch.draw(rec, fig)
+        ch.points(rec, c, "pt", [5.0], [0.5], (200, 0, 0), size=3.0)
+    import xml.etree.ElementTree as ET
+
+    w, h, circles, _, texts = read_svg(tmp_path / "w.svg")
+    assert f"{w:.0f}x{h:.0f}" == ch.size(fig)
+    for e in ET.parse(tmp_path / "w.svg").getroot().iter("{http://www.w3.org/2000/svg}text"):
+        x, t = float(e.get("x")), e.text  # every label lies on the page: a legend's begins at x, others centre on it
+        start = x if e.get("text-anchor") == "start" else x - ch.CHAR_WIDTH * len(t) / 2
+        assert 0.0 <= start and start + ch.CHAR_WIDTH * len(t) <= w, t
+        assert (e.get("text-anchor") == "start") == (t in ("TP", long.label)), t
+    left = (w - 300.0) / 2
+    vx, vy = c.xy(5.0, 0.5)
+    assert any(np.allclose(p, [vx + left, vy + 240.0, 3.0]) for p in circles)
+    # a grid at least as wide as its legend is unchanged
+    assert ch.figure([c], 1, [ch.Key("TP", (0, 0, 200), "interval")]).legend.size[0] == 300.0
+
+
 def test_svg_fills_a_band_as_one_polygon_clipped_to_the_plot_box(tmp_path):
     import xml.etree.ElementTree as ET
 
@@ -472,13 +500,14 @@ def test_svg_of_the_cells_figure_holds_the_recordings_marks_and_labels(tmp_path)
     record_cells([(table, results)], tmp_path / "t.svg")
     fig = cells_figure([(table, results)])
     c = fig.charts[0]
-    _, _, circles, _, texts = read_svg(tmp_path / "t.svg")
-    rate = positions(rec, f"/{c.path}/data/tp/rate")[0] + [0.0, c.size[1]]
+    w, _, circles, _, texts = read_svg(tmp_path / "t.svg")
+    left = (w - fig.columns * c.size[0]) / 2  # a one-method panel is narrower than its legend: centred
+    rate = positions(rec, f"/{c.path}/data/tp/rate")[0] + [left, c.size[1]]
     assert np.min(np.linalg.norm(circles[:, :2] - rate, axis=1)) < 0.01  # the same point, on the page
     # every label of the recording is a text of the SVG, at the point the label box is centred on
     rrd_labels = sorted(t for comps in rec.values() for t in comps.get("labels", []))
     assert rrd_labels == sorted(t for _, _, t in texts)
-    count = positions(rec, f"/{c.path}/data/tp/counts")[0] + [0.0, c.size[1] + ch.TEXT_HEIGHT / 2 + ch.LABEL_DROP]
+    count = positions(rec, f"/{c.path}/data/tp/counts")[0] + [left, c.size[1] + ch.TEXT_HEIGHT / 2 + ch.LABEL_DROP]
     assert any(t == "4" and abs(x - count[0]) < 0.01 and abs(y - count[1]) < 0.01 for x, y, t in texts)
 
 
