@@ -14,7 +14,7 @@ seeds with their standard errors over seeds.
     taskset -c 1 python experiments/observation_noise_eval.py --rollouts 100 --out tip_noise.json \\
         results/thesis/cartpole_swingup_tip_k1_{pilco,tp}_thesis_s{0,1,2,3,4}.h5
 
-``--out`` (JSON; an existing file is refused) is rewritten after every file, so a stopped run keeps
+``--out`` (JSON; an existing file is refused without ``--overwrite``) is rewritten after every file, so a stopped run keeps
 what it finished. Result files are only read (unfinished ones are refused).
 """
 
@@ -23,7 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -81,9 +81,11 @@ def summary_text(e: dict) -> str:
 
 
 def write(out: Path, payload: dict) -> None:
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(payload, indent=1) + "\n")
-    os.replace(tmp, out)
+    """Rewrite ``out`` in one step (the library's :func:`pipps.experiments.storage.publish`)."""
+    from pipps.experiments.storage import publish
+
+    with publish(out, overwrite=True, command="observation_noise_eval.py") as tmp:
+        tmp.write_text(json.dumps(payload, indent=1) + "\n")
 
 
 def main(argv=None) -> None:
@@ -91,6 +93,7 @@ def main(argv=None) -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("files", nargs="+", help="result files (read only)")
     parser.add_argument("--out", required=True, type=Path, help="JSON to write (an existing file is refused)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     parser.add_argument("--k", default="own,0",
                         help="comma-separated observation-noise multipliers; 'own' is the experiment's (default own,0)")
     parser.add_argument("--rollouts", type=int, default=100, help="fresh true-system rollouts per policy and k")
@@ -105,25 +108,25 @@ def main(argv=None) -> None:
         parser.error(f"--k: each multiplier must be a finite number >= 0, got {args.k!r}")
     if args.rollouts < 2:
         parser.error(f"--rollouts must be at least 2, got {args.rollouts}")
-    if args.out.exists():
-        parser.error(f"--out {args.out} exists; pick a new name (results are never overwritten)")
+    from pipps.experiments.storage import OutputError, check_new_file
+
+    try:
+        check_new_file(args.out, overwrite=args.overwrite, option="--out", suffix=".json", inputs=tuple(args.files),
+                       command="observation_noise_eval.py")
+    except OutputError as e:
+        parser.error(str(e))
     pipps.enable_float64()
     from pipps.experiments.resimulate import Resimulator
+    from pipps.experiments.results import code_version
 
     resim, rows = Resimulator(), []
-    command = "python experiments/observation_noise_eval.py " + " ".join(argv if argv is not None else os.sys.argv[1:])
+    command = "python experiments/observation_noise_eval.py " + " ".join(argv if argv is not None else sys.argv[1:])
     for path in args.files:
         rows.append(measure(path, resim, ks, args.rollouts, args.key_seed, args.trial))
         print(row_text(rows[-1]), flush=True)
-        write(args.out, dict(command=command, code=_code_version(), rows=rows, summary=summary(rows)))
+        write(args.out, dict(command=command, code=code_version(), rows=rows, summary=summary(rows)))
     for entry in summary(rows):
         print(summary_text(entry))
-
-
-def _code_version() -> str:
-    from pipps.experiments.results import code_version
-
-    return code_version()
 
 
 if __name__ == "__main__":

@@ -473,7 +473,7 @@ def _entry_width(k: Key) -> float:
 
 def legend_width(keys: Sequence[Key]) -> float:
     """The narrowest legend strip that holds each of ``keys`` on a row of its own (0 without keys)."""
-    return max((_entry_width(k) for k in keys), default=-20.0) + 20.0
+    return max(_entry_width(k) for k in keys) + 20.0 if keys else 0.0
 
 
 def _legend_rows(keys: Sequence[Key], width: float) -> list[list[Key]]:
