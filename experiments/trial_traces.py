@@ -19,7 +19,8 @@ directions (the Tip Cost's multi-modality, docs/results.md claim 3) shows as qua
 Unfinished files are read too (no checksum verification). Cart-pole state order [x, v, ω, θ].
 """
 
-import sys
+import argparse
+from pathlib import Path
 
 import numpy as np
 
@@ -59,14 +60,24 @@ def particles(paths, steps=(10, 15, 20, 30)) -> None:
                   + f"  upright at the end {np.mean(upright):.2f} of {theta.shape[1]}")
 
 
-def main(paths) -> None:
-    if paths and paths[0] == "--summary":
-        summary(paths[1:])
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("files", nargs="+", type=Path, help="result files (.h5), finished or not")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--summary", action="store_true", help="one line per file: final return, largest median gradient norm")
+    mode.add_argument("--particles", action="store_true", help="per trial, where the stored particles put the pole")
+    args = parser.parse_args(argv)
+    missing = [str(p) for p in args.files if not p.is_file()]
+    if missing:
+        parser.error("no such file: " + ", ".join(missing))
+    if args.summary:
+        summary(args.files)
         return
-    if paths and paths[0] == "--particles":
-        particles(paths[1:])
+    if args.particles:
+        particles(args.files)
         return
-    for path in paths:
+    for path in args.files:
         print(path)
         for t in read_result(path, verify=False).trials:
             if t.kind != "learned":
@@ -79,4 +90,4 @@ def main(paths) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()
