@@ -27,6 +27,8 @@ R scales as ``--budget / P`` (R·P particles per configuration; default 1.2e6: R
     python benchmarks/estimator_bias.py                     # the numbers in docs/estimator-bias.md
     python benchmarks/estimator_bias.py --json bias.json    # also write every number (bias vectors, SEs)
     python benchmarks/estimator_bias.py --quick             # a smoke run (R·P = 3e4, P ≤ 100)
+
+An existing ``--json`` file is refused before any work unless ``--overwrite`` is given.
 """
 
 from __future__ import annotations
@@ -37,12 +39,14 @@ import os
 import platform
 import time
 import zlib
+from pathlib import Path
 
 import jax
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
 import pipps
+from pipps.experiments.storage import OutputError, check_new_file, publish
 from pipps.particles.forward import RolloutConfig
 from pipps.propagation.estimators import estimator, thesis_estimator
 from pipps.stats import replicate_gradients, z_bound
@@ -142,9 +146,17 @@ def main(argv=None):
     ap.add_argument("--estimators", nargs="+", default=list(ESTIMATORS), choices=list(ESTIMATORS))
     ap.add_argument("--particles", type=int, nargs="+", default=[30, 100, 300])
     ap.add_argument("--noise", type=float, nargs="+", default=list(NOISE_STDS))
-    ap.add_argument("--json", help="write every number (bias vectors, SEs, timings) to this file")
+    ap.add_argument("--json", help="write every number (bias vectors, SEs, timings) to this file "
+                                   "(an existing file is refused without --overwrite)")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     ap.add_argument("--quick", action="store_true", help="R·P = 3e4, P ≤ 100: a smoke run")
     args = ap.parse_args(argv)
+    command = Path(__file__).name
+    if args.json:  # before any work: an existing file is kept unless --overwrite (docs/reliability.md)
+        try:
+            check_new_file(args.json, overwrite=args.overwrite, option="--json", suffix=".json", command=command)
+        except OutputError as err:
+            ap.exit(2, f"{command}: error: {err}\n")
     if args.quick:
         args.budget, args.particles = 30_000, [p for p in args.particles if p <= 100]
     t0 = time.perf_counter()
@@ -157,8 +169,12 @@ def main(argv=None):
     print(markdown_table(rows))
     print(f"\n# wall time {wall:.0f} s")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"args": vars(args), "wall_seconds": wall, "rows": rows}, f, indent=1)
+        record = {k: v for k, v in vars(args).items() if k != "overwrite"}
+        try:  # written beside it and moved into place whole; a file that appeared meanwhile is kept
+            with publish(args.json, overwrite=args.overwrite, command=command) as tmp, open(tmp, "w") as f:
+                json.dump({"args": record, "wall_seconds": wall, "rows": rows}, f, indent=1)
+        except OutputError as err:
+            ap.exit(1, f"{command}: error: {err}\n")
 
 
 if __name__ == "__main__":

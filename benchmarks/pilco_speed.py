@@ -14,7 +14,9 @@ Models:
 
 Usage::
 
-    JAX_PLATFORMS=cpu python benchmarks/pilco_speed.py [--repeats 10] [--horizon 30] [--json out.json]
+    JAX_PLATFORMS=cpu python benchmarks/pilco_speed.py [--repeats 10] [--horizon 30] [--json out.json [--overwrite]]
+
+An existing ``--json`` file is refused before any work unless ``--overwrite`` is given.
 """
 
 from __future__ import annotations
@@ -25,12 +27,14 @@ import os
 import platform
 import statistics
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
 
 import pipps
 from pipps import gp
+from pipps.experiments.storage import OutputError, check_new_file, publish
 from pipps.gp.types import GPConfig
 from pipps.pilco import objective
 from pipps.policies import init_rbf_policy
@@ -102,10 +106,18 @@ def main(argv=None):
     ap.add_argument("--inducing", type=int, default=300)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--checkpoint", action="store_true", help="also time the jax.checkpoint variant")
-    ap.add_argument("--json", default=None, help="write the results here")
+    ap.add_argument("--json", default=None, help="write the results here (an existing file is refused "
+                                                 "without --overwrite)")
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     args = ap.parse_args(argv)
     if args.repeats < 10:
         ap.error("the protocol needs at least 10 repeats")
+    command = Path(__file__).name
+    if args.json:  # before any work: an existing file is kept unless --overwrite (docs/reliability.md)
+        try:
+            check_new_file(args.json, overwrite=args.overwrite, option="--json", suffix=".json", command=command)
+        except OutputError as err:
+            ap.exit(2, f"{command}: error: {err}\n")
 
     task = make_task("cartpole_swingup", preset="thesis")
     policy = init_rbf_policy(jax.random.key(0), args.centres, task.model_init_mean, task.model_init_cov, task.u_max)
@@ -126,8 +138,12 @@ def main(argv=None):
             print(f"{label:28s} median {row['median_s'] * 1e3:8.1f} ms  (min {row['min_s'] * 1e3:.1f}, "
                   f"max {row['max_s'] * 1e3:.1f}, n={len(times)}; first call incl. compile {compile_s:.1f} s)")
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(dict(machine=info, args=vars(args), fit_s=fit_s, results=rows), fh, indent=2)
+        record = {k: v for k, v in vars(args).items() if k != "overwrite"}
+        try:  # written beside it and moved into place whole; a file that appeared meanwhile is kept
+            with publish(args.json, overwrite=args.overwrite, command=command) as tmp, open(tmp, "w") as fh:
+                json.dump(dict(machine=info, args=record, fit_s=fit_s, results=rows), fh, indent=2)
+        except OutputError as err:
+            ap.exit(1, f"{command}: error: {err}\n")
 
 
 if __name__ == "__main__":

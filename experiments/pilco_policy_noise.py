@@ -9,8 +9,10 @@ budget) runs twice: without the term (``off``: what the loop ran; it should land
 policy) and with it (``on``: PILCO release V0.9's ``S + diag(σ_n²/2)`` for the policy's input,
 docs/pilco.md). The stored policy and both new ones are evaluated with the same ``--rollouts``
 fresh true-system rollouts (keys independent of the experiment's; common to the three policies,
-so their differences are paired): the fraction of rollouts with return below the threshold (15),
-the mean return and the fraction physically balanced (:func:`pipps.tasks.cartpole.balanced`).
+so their differences are paired): the fraction of rollouts with return below the task's return
+threshold (the cart-pole's 15), the mean return and the fraction meeting the task's success rule
+(the cart-pole's: physically balanced, :func:`pipps.tasks.cartpole.balanced`). A file whose task
+has no return threshold (the unicycle's) is refused.
 
     JAX_PLATFORMS=cpu taskset -c 1 python experiments/pilco_policy_noise.py --rollouts 300 \\
         --out pilco_policy_noise.json \\
@@ -18,8 +20,9 @@ the mean return and the fraction physically balanced (:func:`pipps.tasks.cartpol
         results/thesis/cartpole_swingup_angle_k16_pilco_thesis_s{0,1,2,3,4}.h5
 
 One row per file, then per k the means over files and the paired difference ``on − off`` with its
-standard error over files. ``--out`` (JSON; an existing file is refused) is rewritten after every
-file, so a stopped run keeps what it finished. Result files are only read.
+standard error over files. ``--out`` (JSON; an existing file is refused before any work unless
+``--overwrite`` is given) is rewritten whole after every file, so a stopped run keeps what it
+finished. Result files are only read.
 """
 
 from __future__ import annotations
@@ -27,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -40,6 +42,7 @@ from jax.flatten_util import ravel_pytree
 import pipps
 
 VARIANTS = ("stored", "off", "on")
+COMMAND = Path(__file__).name
 
 
 def search_config(cfg, problem, policy_noise: bool):
@@ -107,8 +110,10 @@ def measure(path: str, programs: Programs, rollouts: int, key_seed: int, trial: 
         raise SystemExit(f"{path}: a {cfg.method} result; this measures PILCO's search")
     if cfg.pilco_policy_noise:
         raise SystemExit(f"{path}: learned with the policy-input noise term on; pick a default PILCO result")
-    if not cfg.task.startswith("cartpole"):
-        raise SystemExit(f"{path}: the return threshold and the balance criterion are the cart-pole's")
+    threshold = cfg.task_spec.success_for(cfg).threshold
+    if threshold is None:
+        raise SystemExit(f"{path}: the {cfg.task_spec.label} has no return threshold; this measures the fraction "
+                         "of returns below it")
     learned = [t.index for t in result.trials if t.kind == "learned"]
     trial = learned[-1] if trial is None else trial
     snap = load_snapshot(path, trial)
@@ -132,12 +137,12 @@ def measure(path: str, programs: Programs, rollouts: int, key_seed: int, trial: 
     evaluations = {}
     for name in VARIANTS:
         returns, _, balanced = (np.asarray(a) for a in jax.device_get(evaluate(keys, policies[name])))
-        evaluations[name] = dict(below_threshold=float(np.mean(returns < cfg.success_threshold)),
+        evaluations[name] = dict(below_threshold=float(np.mean(returns < threshold)),
                                  mean_return=float(np.mean(returns)),
                                  se_return=float(np.std(returns, ddof=1) / math.sqrt(returns.size)),
                                  balanced=float(np.mean(balanced)))
     return dict(file=str(path), k=float(cfg.k), seed=int(cfg.seed), trial=int(trial), model_points=snap.num_points,
-                sparse=bool(snap.sparse), threshold=float(cfg.success_threshold), searches=searches,
+                sparse=bool(snap.sparse), threshold=float(threshold), searches=searches,
                 objectives=objectives, evaluations=evaluations,
                 off_vs_stored_max_abs=float(np.max(np.abs(flat["off"] - flat["stored"]))),
                 stored_return_in_file=float(result.trials[trial].eval_return))
@@ -183,27 +188,35 @@ def summary_text(entry: dict) -> str:
     return "\n".join(lines)
 
 
-def write(out: Path, payload: dict) -> None:
-    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(payload, indent=1) + "\n")
-    os.replace(tmp, out)
+def write(out: Path, payload: dict, overwrite: bool) -> None:
+    """Write ``out`` in one step (the library's :func:`pipps.experiments.storage.publish`): the first
+    time over an existing file only with ``overwrite``, then over the script's own file."""
+    from pipps.experiments.storage import publish
+
+    with publish(out, overwrite=overwrite, command=COMMAND) as tmp:
+        tmp.write_text(json.dumps(payload, indent=1) + "\n")
 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("files", nargs="+", help="PILCO result files (read only)")
-    parser.add_argument("--out", required=True, type=Path, help="JSON to write (an existing file is refused)")
+    parser.add_argument("--out", required=True, type=Path,
+                        help="JSON to write (an existing file is refused without --overwrite)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     parser.add_argument("--rollouts", type=int, default=300, help="fresh true-system rollouts per policy")
     parser.add_argument("--key-seed", type=int, default=0, help="seed of the fresh rollouts' keys")
     parser.add_argument("--trial", type=int, default=None, help="the learned trial (default: the last)")
     args = parser.parse_args(argv)
     if args.rollouts < 2:
         parser.error("--rollouts must be at least 2")
-    try:
-        args.out.open("x").close()  # claim the name: never overwrite
-    except FileExistsError:
-        parser.error(f"--out {args.out} exists; choose another name")
+    from pipps.experiments.storage import OutputError, check_new_file
+
+    try:  # before any work (docs/reliability.md)
+        check_new_file(args.out, overwrite=args.overwrite, option="--out", suffix=".json", inputs=tuple(args.files),
+                       command=COMMAND)
+    except OutputError as err:
+        parser.exit(2, f"{COMMAND}: error: {err}\n")
     pipps.enable_float64()
     from pipps.experiments.results import code_version
 
@@ -217,7 +230,7 @@ def main(argv=None) -> None:
         row["seconds"] = time.perf_counter() - t0
         payload["rows"].append(row)
         payload["summary"] = summary(payload["rows"])
-        write(args.out, payload)
+        write(args.out, payload, overwrite=args.overwrite or len(payload["rows"]) > 1)
         print(row_text(row) + f"\n  {row['seconds']:.0f} s", flush=True)
     for entry in payload["summary"]:
         print(summary_text(entry))

@@ -3,8 +3,42 @@
 the page shows exactly what the command prints:
 
     python experiments/results_tables.py
+
+A maintainer's tool that rewrites docs/results.md in place, but only the blocks between those
+markers: the rest of the page is kept as it is. A page with none of the markers is refused (one
+line) before any table is computed. The new page is written to a temporary file beside it and
+moved into place in one step, so the page is never seen half-written.
 """
-import re, subprocess, sys
+import os, re, subprocess, sys
+
+PAGE = "docs/results.md"
+
+def refuse(line):
+    print(f"results_tables.py: error: {line}", file=sys.stderr)
+    sys.exit(2)
+
+def read_page():
+    """The page's text; exits with one line if it cannot be read or holds no ``<!-- pipps:NAME -->`` marker."""
+    try:
+        text = open(PAGE).read()
+    except OSError as err:
+        refuse(f"cannot read {PAGE}: {err.strerror or err}")
+    if not re.search(r"<!-- pipps:[^ ]+ -->", text):
+        refuse(f"{PAGE} has no <!-- pipps:NAME --> markers; this tool rewrites only the blocks between them")
+    return text
+
+def write_page(text):
+    """Replace the page whole: a temporary file beside it, then ``os.replace``."""
+    tmp = os.path.join(os.path.dirname(PAGE), f".{os.path.basename(PAGE)}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+        os.replace(tmp, PAGE)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+read_page()  # before any table is computed
 
 def table_output(*args):
     return subprocess.run(["pipps", "table", "results/thesis", *args], capture_output=True, text=True,
@@ -33,10 +67,10 @@ for name in ("4.2", "4.3", "4.4", "del"):
         blocks["t" + name.replace(".", "")] = [l for l in out if l.strip()][:200]
     except StopIteration:
         pass
-s = open("docs/results.md").read()
+s = read_page()  # again: the page may have been edited while the tables ran
 for name, lines in blocks.items():
     pat = re.compile(rf"(<!-- pipps:{name} -->\n).*?(\n<!-- /pipps -->)", re.S)
     if pat.search(s):
         s = pat.sub(lambda m: m.group(1) + "\n".join(lines) + m.group(2), s)
-open("docs/results.md", "w").write(s)
+write_page(s)
 print("filled", [n for n in blocks if f"<!-- pipps:{n} -->" in s])

@@ -655,3 +655,151 @@ def test_png_without_xvfb_or_a_driver_fails_first_with_the_install_line(monkeypa
         assert plot.graphics_driver() is None
         (tmp_path / "lvp_icd.x86_64.json").write_text("{}")
         assert plot.graphics_driver() == str(tmp_path / "lvp_icd.x86_64.json")
+
+
+# -- 9. the scripts that write files refuse the same way ------------------------------------------------------------
+
+#: runs ``main(argv)`` of a script in a fresh interpreter, with some of its module's names replaced
+#: (name -> Python expression, evaluated in the module; ``work_started`` raises)
+_HARNESS = """
+import importlib.util, json, sys
+path, argv, stubs = sys.argv[1], json.loads(sys.argv[2]), json.loads(sys.argv[3])
+sys.argv = [path, *argv]
+spec = importlib.util.spec_from_file_location("script_under_test", path)
+script = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(script)
+def work_started(*args, **kwargs):
+    raise RuntimeError("WORK STARTED")
+for name, value in stubs.items():
+    setattr(script, name, eval(value, vars(script), {"work_started": work_started}))
+script.main(argv)
+"""
+
+#: script, its output option, and the functions its real work starts with
+BENCHMARKS = {
+    "benchmarks/estimator_bias.py": ("--json", ("reference_system", "run", "replicate_gradients")),
+    "benchmarks/pilco_speed.py": ("--json", ("make_task", "build_models", "init_rbf_policy")),
+}
+
+
+def _env() -> dict:
+    return dict(os.environ, JAX_PLATFORMS="cpu",
+                PYTHONPATH=os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p))
+
+
+def run_script(script: str, *args, stubs: dict | None = None) -> subprocess.CompletedProcess:
+    """``main(args)`` of ``script`` in its own interpreter (its float64 switch stays there), with
+    ``stubs`` replacing names of its module."""
+    import json
+
+    cmd = [sys.executable, "-c", _HARNESS, str(REPO / script), json.dumps([str(a) for a in args]),
+           json.dumps(stubs or {})]
+    return subprocess.run(cmd, capture_output=True, text=True, env=_env())
+
+
+def refused_line(script: str, path: Path, option: str) -> str:
+    name = Path(script).name
+    return f"{name}: error: {path} exists; {name} replaces it only with --overwrite, or pick another {option}"
+
+
+@pytest.mark.parametrize("script", sorted(BENCHMARKS))
+def test_benchmarks_refuse_an_existing_json_before_any_work(tmp_path, script):
+    """Default arguments (hours of work): every function the work starts with raises if reached."""
+    option, work = BENCHMARKS[script]
+    out = tmp_path / "bench.json"
+    out.write_bytes(b'{"kept": true}\n')
+    proc = run_script(script, option, out, stubs={name: "work_started" for name in work})
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [refused_line(script, out, option)], proc.stderr
+    assert proc.stdout == "" and out.read_bytes() == b'{"kept": true}\n'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bench.json"]
+
+
+@pytest.mark.parametrize("script", sorted(BENCHMARKS))
+def test_benchmarks_replace_a_json_whole_only_with_overwrite(tmp_path, script):
+    """The writer path on an empty workload: the file is replaced by the new record, no temporary file stays."""
+    import json
+
+    option, _ = BENCHMARKS[script]
+    out = tmp_path / "bench.json"
+    out.write_bytes(b'{"kept": true}\n')
+    empty = {"run": "lambda *a, **k: []", "markdown_table": "lambda rows: ''"} if "bias" in script else \
+        {"make_task": "lambda *a, **k: __import__('types').SimpleNamespace(model_init_mean=0, model_init_cov=0, "
+                      "u_max=0)", "init_rbf_policy": "lambda *a, **k: None",
+         "build_models": "lambda *a, **k: ({}, 0.0)"}
+    proc = run_script(script, option, out, "--overwrite", stubs=empty)
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads(out.read_text())
+    assert record.get("rows", record.get("results")) == [] and "overwrite" not in record["args"]
+    assert record["args"]["json"] == str(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bench.json"]
+
+
+def test_pilco_policy_noise_refuses_an_existing_out_before_reading_its_inputs(tmp_path):
+    """The result files do not exist: reading one (the work) would fail loudly, naming it."""
+    script = "experiments/pilco_policy_noise.py"
+    out, missing = tmp_path / "noise.json", tmp_path / "missing_pilco_s0.h5"
+    out.write_bytes(b'{"rows": []}\n')
+    cmd = [sys.executable, str(REPO / script), "--rollouts", "300", "--out", str(out), str(missing)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=_env())
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines() == [refused_line(script, out, "--out")], proc.stderr
+    assert "missing_pilco_s0" not in proc.stderr and proc.stdout == ""
+    assert out.read_bytes() == b'{"rows": []}\n' and sorted(p.name for p in tmp_path.iterdir()) == ["noise.json"]
+    # with --overwrite the check passes and the work starts: the missing input is read and named
+    proc = subprocess.run(cmd + ["--overwrite"], capture_output=True, text=True, env=_env())
+    assert proc.returncode != 0 and "missing_pilco_s0" in proc.stderr, proc.stderr
+    assert out.read_bytes() == b'{"rows": []}\n' and sorted(p.name for p in tmp_path.iterdir()) == ["noise.json"]
+
+
+def _fake_pipps(tmp_path: Path) -> Path:
+    """A ``pipps`` on PATH that records each call and prints the same small tables whatever it is asked."""
+    bin_ = tmp_path / "bin"
+    bin_.mkdir()
+    fake = bin_ / "pipps"
+    fake.write_text(f"""#!/bin/sh
+echo "$@" >> {tmp_path / 'calls'}
+cat <<'EOF'
+**Table 4.1 — cart-pole swing-up, Angle Cost**, every reading
+
+| k | method | x |
+|---|---|---|
+| k = 1 | TP | 1 |
+| k = 1 | PILCO | 2 |
+| k = 4 | RP | 3 |
+
+**Table 4.1 — cart-pole swing-up, Angle Cost**, TP − PILCO
+
+| k | d |
+|---|---|
+| k = 1 | -1 |
+
+**Table 4.1 — cart-pole swing-up, Angle Cost**, TP − RP
+
+| k | d |
+|---|---|
+| k = 1 | -2 |
+EOF
+""")
+    fake.chmod(0o755)
+    return bin_
+
+
+def test_results_tables_rewrites_only_the_marked_blocks_and_refuses_a_page_without_markers(tmp_path):
+    script = [sys.executable, str(REPO / "experiments/results_tables.py")]
+    env = dict(_env(), PATH=os.pathsep.join([str(_fake_pipps(tmp_path)), os.environ.get("PATH", "")]))
+    (tmp_path / "docs").mkdir()
+    page = tmp_path / "docs/results.md"
+    page.write_text("# Results\n\nNo tables here.\n")
+    proc = subprocess.run(script, capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert "docs/results.md has no <!-- pipps:NAME --> markers" in proc.stderr
+    assert page.read_text() == "# Results\n\nNo tables here.\n" and not (tmp_path / "calls").exists()
+    text = "# Results\n\nbefore\n<!-- pipps:t41-k1 -->\n| old |\n<!-- /pipps -->\nafter <!-- pipps:unknown -->\n"
+    page.write_text(text)
+    proc = subprocess.run(script, capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "filled ['t41-k1']"
+    assert page.read_text() == text.replace("| old |", "| k | method | x |\n|---|---|---|\n| k = 1 | TP | 1 |\n"
+                                                      "| k = 1 | PILCO | 2 |")
+    assert sorted(p.name for p in (tmp_path / "docs").iterdir()) == ["results.md"]
