@@ -53,6 +53,7 @@ import pipps
 from pipps.reporting.tables import wilson_interval
 from pipps.tasks.cartpole import BALANCE_ANGLE, BALANCE_POSITION, BALANCE_STEPS, BALANCED_FRACTION, balanced
 from pipps.tasks.presets import make_task
+from pipps.tasks.registry import get_task
 
 pipps.enable_float64()
 
@@ -215,6 +216,12 @@ def choose(k: float, select: int, report: int, select_key, report_key, bounds):
     return chosen
 
 
+def cartpole_records() -> tuple:
+    """The records of the built-in cart-pole tasks (swing-up and balancing), the only ones whose
+    policies the controllers here can take over from."""
+    return get_task("cartpole_swingup"), get_task("cartpole_balance")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("results", nargs="*", metavar="H5", help="cart-pole result files whose final policies hand over")
@@ -231,9 +238,11 @@ def main(argv=None) -> None:
     from pipps.experiments.results import read_result
 
     results = [(path, read_result(path)) for path in args.results]
+    cartpole = cartpole_records()
     for path, res in results:
-        if not res.config.task.startswith("cartpole"):
-            raise SystemExit(f"{path}: task {res.config.task!r}, not the cart-pole")
+        if res.config.task_spec not in cartpole:
+            raise SystemExit(f"{path}: task {res.config.task!r} is not a cart-pole task; the controllers here "
+                             "linearise the cart-pole")
     ks = sorted({float(v) for v in args.k.split(",") if v.strip()} | {float(r.config.k) for _, r in results})
     select_key, report_key, handover_key = jax.random.split(jax.random.PRNGKey(args.seed), 3)
     print("Scenario upright: start at upright, at rest; the controller for all 30 steps; criterion on the last 10 states")

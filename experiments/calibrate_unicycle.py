@@ -44,6 +44,7 @@ import scipy.linalg
 import pipps
 from pipps.experiments import resolve_config
 from pipps.reporting.calibration import fit_return_threshold
+from pipps.reporting.verdicts import criterion, reads_upright
 from pipps.experiments.results import read_result
 from pipps.experiments.loop import Programs, make_experiment_task
 from pipps.policies import LinearPolicy
@@ -145,11 +146,12 @@ def calibrate_on_results(paths) -> None:
     fraction = None
     for path in paths:
         res = read_result(path, verify=False)
-        if res.config.task != "unicycle":
-            raise SystemExit(f"{path}: task {res.config.task!r}, not the unicycle")
-        if fraction is not None and res.config.upright_fraction != fraction:
-            raise SystemExit(f"{path}: upright_fraction {res.config.upright_fraction} differs from {fraction}")
-        fraction = res.config.upright_fraction
+        success = criterion(res.config)
+        if not reads_upright(success):
+            raise SystemExit(f"{path}: task {res.config.task!r} is not judged by staying upright (never_fell)")
+        if fraction is not None and success.fraction != fraction:
+            raise SystemExit(f"{path}: upright fraction {success.fraction} differs from {fraction}")
+        fraction = success.fraction
         for t in res.trials:
             if t.kind == "learned":
                 rows.append((res.config.seed, t.index, t.eval_return, t.upright_fraction))

@@ -221,7 +221,7 @@ def study_caveat(kind: str, cfg: ExperimentConfig, *, particles, repeats: int, d
     with at least the particles and repeats of :data:`THESIS_STUDY` and Δ spanning its values."""
     ref = THESIS_STUDY[kind]
     off = []
-    if cfg.task != THESIS_STUDY_TASK:
+    if cfg.task != THESIS_STUDY_TASK:  # a comparison with the thesis' setting for the caveat, not a task's behaviour
         off.append(f"a {cfg.task} policy (the thesis: cart-pole swing-up)")
     if cfg.protocol != "thesis":
         off.append(f"a {cfg.protocol}-preset file (the thesis protocol is --preset thesis)")

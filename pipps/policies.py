@@ -156,6 +156,64 @@ class LinearPolicy:
 Policy = RBFPolicy | PilcoRBFPolicy | LinearPolicy
 
 
+#: per policy type, each array field's shape in terms of its sizes: "n" centres, "D" policy-input
+#: components, "F" controls
+_FIELD_SHAPES = {
+    RBFPolicy: dict(centres=("n", "D"), weights=("n", "F"), log_lambda=("D",)),
+    PilcoRBFPolicy: dict(centres=("n", "D"), pseudo_targets=("n", "F"), log_lengthscale=("F", "D")),
+    LinearPolicy: dict(W=("F", "D"), b=("F",)),
+}
+_SIZE_NAMES = {"D": "policy_input_dim", "F": "action_dim"}
+
+
+def check_policy(policy, input_dim: int, action_dim: int) -> None:
+    """Refuse a policy that does not fit a problem's policy input (``input_dim``, the problem's
+    ``policy_input_dim``) and controls (``action_dim``), before JAX broadcasts it silently (centres
+    of one component against a 3-dim input).
+
+    A built-in policy is checked field by field; any other callable by the shape of its output on
+    one input of ``input_dim`` components (:func:`jax.eval_shape`, nothing runs). Shapes only:
+    tracers pass, so a jitted caller checks once, while tracing.
+
+    Raises:
+      ValueError: naming the field, the size the problem expects and the size it has.
+    """
+    fields = _FIELD_SHAPES.get(type(policy))
+    if fields is None:
+        _check_callable(policy, input_dim, action_dim)
+        return
+    sizes = {"D": input_dim, "F": action_dim}
+    n = None
+    for name, dims in fields.items():
+        shape = tuple(jnp.shape(getattr(policy, name)))
+        if len(shape) != len(dims):
+            raise ValueError(f"policy.{name}: must have {len(dims)} dimensions {dims}, got shape {shape}")
+        for axis, (dim, got) in enumerate(zip(dims, shape)):
+            if dim == "n":
+                n = got if n is None else n
+                want, what = n, "centres (the same in every field)"
+            else:
+                want, what = sizes[dim], f"the problem's {_SIZE_NAMES[dim]}"
+            if got != want:
+                raise ValueError(f"policy.{name}: axis {axis} has size {got}, expected {want} ({what})")
+    if len(policy.u_max) != action_dim:
+        raise ValueError(f"policy.u_max: has {len(policy.u_max)} limits, expected {action_dim} "
+                         "(the problem's action_dim)")
+
+
+def _check_callable(policy, input_dim: int, action_dim: int) -> None:
+    if not callable(policy):
+        raise ValueError(f"policy: must be callable v -> u, got {type(policy).__name__}")
+    try:
+        out = jax.eval_shape(policy, jax.ShapeDtypeStruct((input_dim,), jnp.result_type(float)))
+    except Exception as err:  # noqa: BLE001 - whatever the policy raises, say it in one line
+        raise ValueError(f"policy: fails on an input of shape ({input_dim},) (the problem's policy_input_dim) "
+                         f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+    if getattr(out, "shape", None) != (action_dim,):
+        raise ValueError(f"policy: returns shape {getattr(out, 'shape', type(out).__name__)}, expected "
+                         f"({action_dim},) (the problem's action_dim)")
+
+
 def num_parameters(policy: Policy) -> int:
     """Number of trainable scalars (the pytree's leaves)."""
     return int(sum(np.size(leaf) for leaf in jax.tree.leaves(policy)))

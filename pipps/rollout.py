@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pipps.policies import check_policy
 from pipps.precision import require_float64
 from pipps.tasks.base import Simulator, Task
 
@@ -66,6 +67,8 @@ def rollout(
     task with a fall condition, a non-finite next state counts as a fall as well.
     """
     require_float64("pipps.rollout.rollout")
+    if policy is not None:
+        check_policy(policy, task.problem.policy_input_dim, task.problem.action_dim)
     if task.host_stepped:
         if isinstance(key, jax.core.Tracer):
             raise TypeError(f"{task.simulator.name}: a host-stepped true system cannot be traced (jit, vmap); "
@@ -160,6 +163,8 @@ def host_rollout(key: jax.Array, task: Task, policy: Callable[[jax.Array], jax.A
     """
     require_float64("pipps.rollout.host_rollout")
     sim, problem = task.simulator, task.problem
+    if policy is not None:
+        check_policy(policy, problem.policy_input_dim, problem.action_dim)
     H = problem.horizon if horizon is None else int(horizon)
     seed, obs_noise, rand_u = jax.device_get(_draws(key, H, sim.sim_dim, problem.action_dim,
                                                     jnp.asarray(sim.obs_noise_std), jnp.asarray(sim.u_rand)))

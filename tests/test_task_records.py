@@ -1,8 +1,8 @@
 """A task is one record: what it owns, where it is found, what it refuses (pipps.tasks.spec, registry, base).
 
-* Outside ``pipps/tasks/`` no module branches on a built-in task's name: the source is read for
-  comparisons with the names, prefix tests and lookup tables keyed by them (and the reader is shown
-  to find each kind).
+* Outside ``pipps/tasks/`` no module or script (``experiments/``, ``benchmarks/``) branches on a
+  built-in task's name: the source is read for comparisons with the names, prefix tests and lookup
+  tables keyed by them (and the reader is shown to find each kind).
 * The built-in records reproduce what the library decided by name before (experiment settings,
   criteria, thresholds, PILCO budgets) — the bit-for-bit identity of configurations and results is
   checked by ``benchmarks/loop_reference.py`` and the committed result files (docs/architecture.md).
@@ -82,12 +82,16 @@ def test_the_reader_finds_every_kind_of_name_branch():
 
 
 def test_no_module_outside_tasks_branches_on_a_task_name():
+    """Neither a module of ``pipps/`` outside ``tasks/`` nor a script of ``experiments/`` or
+    ``benchmarks/``: a script specific to one task compares the file's record with that task's
+    (``cfg.task_spec is get_task(…)``) or asks the record what it needs, never the name."""
+    root = PACKAGE.parent
+    paths = [p for p in sorted(PACKAGE.rglob("*.py")) if p.relative_to(PACKAGE).parts[0] != "tasks"]
+    paths += sorted((root / "experiments").rglob("*.py")) + sorted((root / "benchmarks").rglob("*.py"))
     branches = []
-    for path in sorted(PACKAGE.rglob("*.py")):
-        if path.relative_to(PACKAGE).parts[0] == "tasks":
-            continue
-        branches += [f"{path.relative_to(PACKAGE.parent)}:{line} ({kind})"
-                     for line, kind in name_branches(path.read_text(encoding="utf-8"))]
+    for path in paths:
+        name = path.relative_to(root).as_posix()
+        branches += [f"{name}:{line} ({kind})" for line, kind in name_branches(path.read_text(encoding="utf-8"))]
     assert branches == [], "ask the task's record (pipps.tasks.TaskSpec) instead:\n" + "\n".join(branches)
 
 
@@ -235,6 +239,63 @@ def test_records_refuse_what_they_cannot_use():
         spec.make(cost_scale=0.5)
     with pytest.raises(ValueError, match="unknown Task field 'horizn'"):
         spec.make(horizn=5)
+
+
+def test_a_record_refuses_policy_settings_that_do_not_fit_the_problem():
+    """The pendulum's policy sees 3 components (ω, sin θ, cos θ): a 4-component centre box or 2
+    length-scales are refused at construction, naming the field and both sizes."""
+    task, ok = T.Task(_pendulum(), _simulator()), T.Success("upright", lambda s, v: v.all(-1), 0.5)
+    with pytest.raises(ValueError, match=r"TaskSpec.centre_box: has 4 components per side, expected 3 "
+                                         r"\(the problem's policy_input_dim\)"):
+        T.TaskSpec(task, ok, centre_box=((-1.0,) * 4, (1.0,) * 4))
+    with pytest.raises(ValueError, match=r"TaskSpec.settings\['quick'\]: log_lambda_init has 2 values, expected 1 or 3"):
+        T.TaskSpec(task, ok, settings={"quick": {"log_lambda_init": (0.0, 1.0)}})
+    spec = T.TaskSpec(task, ok, centre_box=((-1.0,) * 3, (1.0,) * 3), settings={"quick": {"log_lambda_init": (0.0,) * 3}})
+    assert spec.centre_box == ((-1.0,) * 3, (1.0,) * 3)
+
+
+def _policies(d: int, f: int):
+    import jax
+
+    from pipps.policies import init_linear_policy, init_pilco_rbf_policy, init_rbf_policy
+
+    key, u = jax.random.PRNGKey(0), [2.0] * f
+    return {"rbf": init_rbf_policy(key, 5, np.zeros(d), np.eye(d), u),
+            "pilco_rbf": init_pilco_rbf_policy(key, 5, np.zeros(d), np.eye(d), u),
+            "linear": init_linear_policy(key, d, u)}
+
+
+@pytest.mark.parametrize("kind, field", [("rbf", "centres"), ("pilco_rbf", "centres"), ("linear", "W")])
+def test_a_policy_that_does_not_fit_the_problem_is_refused(kind, field):
+    """Where a policy meets a problem (the true-system rollout, the particle rollout every estimator
+    and the loop run, PILCO's prediction), one that does not fit it is refused by name, before JAX
+    broadcasts a 1-component policy over a 3-component input and runs (or fails deep in a trace)."""
+    import jax
+    import jax.numpy as jnp
+
+    import pipps.pilco
+    from pipps.gp import GPConfig, full_posterior, initial_hyper, make_data
+    from pipps.particles import RolloutConfig, particle_rollout, sample_noise
+    from pipps.policies import check_policy
+    from pipps.rollout import rollout
+
+    task, key, config = T.Task(_pendulum(), _simulator()), jax.random.PRNGKey(1), RolloutConfig(num_particles=3)
+    data = make_data(np.arange(16.0).reshape(4, 4) / 16, np.arange(8.0).reshape(4, 2) / 80)
+    model = full_posterior(initial_hyper(data, GPConfig())[0], data, GPConfig())[0]
+    noise = sample_noise(key, task.problem, config)
+    calls = {"rollout": lambda p: rollout(key, task, p),
+             "particle_rollout": lambda p: particle_rollout(task.problem, p, model, noise, config),
+             "pilco": lambda p: pipps.pilco.objective(task.problem, p, model)}
+    fits, narrow, two_controls = _policies(3, 1)[kind], _policies(1, 1)[kind], _policies(3, 2)[kind]
+    check_policy(fits, task.problem.policy_input_dim, task.problem.action_dim)  # the one that fits passes
+    for name, call in calls.items():
+        with pytest.raises(ValueError, match=rf"policy.{field}: axis 1 has size 1, expected 3 "
+                                             r"\(the problem's policy_input_dim\)"):
+            call(narrow)
+        with pytest.raises(ValueError, match=r"expected 1 \(the problem's action_dim\)"):
+            call(two_controls)
+    with pytest.raises(ValueError, match=r"policy: returns shape \(2,\), expected \(1,\)"):
+        rollout(key, task, lambda v: jnp.zeros(2))
 
 
 # == finding tasks ============================================================================

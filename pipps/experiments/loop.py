@@ -44,26 +44,9 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from pipps.experiments.config import ExperimentConfig, config_difference, same_experiment
-from pipps.experiments.programs import (  # noqa: F401  (evaluate_rollouts ...: re-exported from their old home)
-    ONE_SEED,
-    Programs,
-    Progress,
-    evaluate_rollouts,
-    predict_particles,
-    step_report,
-)
+from pipps.experiments.programs import ONE_SEED, Programs, Progress
 from pipps.experiments.records import ExperimentResult, GPRecord, Timings, TrialResult
-from pipps.experiments.state import (  # noqa: F401  (gp_config ...: re-exported from their old home)
-    advance,
-    gp_config,
-    init_policy,
-    initial_state,
-    make_experiment_task,
-    policy_start_moments,
-    restore,
-    stored_trajectory,
-    trial_keys,
-)
+from pipps.experiments.state import advance, gp_config, initial_state, make_experiment_task, restore, trial_keys
 from pipps.gp import capacity_for
 from pipps.precision import require_float64
 

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from pipps.particles.models import PRECISIONS, model_output, noise_variance
+from pipps.policies import check_policy
 from pipps.tasks.base import Problem
 
 RESAMPLING = ("none", "gaussian")
@@ -158,6 +159,7 @@ def particle_rollout(task: Problem, policy, model, noise: Noise, config: Rollout
     """
     if task.model_dim != noise.x0.shape[-1]:
         raise ValueError(f"noise has state dimension {noise.x0.shape[-1]}, task has {task.model_dim}")
+    check_policy(policy, task.policy_input_dim, task.action_dim)
 
     def body(x, eps):
         rec = particle_step(task, policy, model, config, x, eps, jacobian=jacobian)

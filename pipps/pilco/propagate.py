@@ -46,6 +46,7 @@ from pipps.gaussian import GaussianMap, append_map, trig_augment
 from pipps.gp.types import GPPosterior
 from pipps.pilco.controller import control_moments
 from pipps.pilco.gp_moments import WeightedGP, gp_moments, weighted
+from pipps.policies import check_policy
 from pipps.precision import require_float64
 from pipps.tasks.base import Problem
 
@@ -179,6 +180,7 @@ def _start(task: Problem, init) -> tuple[jax.Array, jax.Array]:
 
 
 def _scan_steps(task, policy, model, init, horizon, model_uncertainty, checkpoint, keep_states, policy_noise=False):
+    check_policy(policy, task.policy_input_dim, task.action_dim)
     H = task.horizon if horizon is None else int(horizon)
     input_noise = policy_input_noise(task, model) if policy_noise else None  # once, not at every step
     if model_uncertainty and isinstance(model, GPPosterior):

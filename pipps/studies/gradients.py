@@ -344,6 +344,7 @@ def landscape_table(r: LandscapeResult) -> str:
         var = [f"{np.var(r.samples[n][i].directional, ddof=1):.3g}" for n in names]
         lines.append(f"| {delta:.3g} | {r.objective_fixed_seed[i]:.4g} | {r.objective_mm[i]:.4g} | {r.directional_mm[i]:.3g} | "
                      + " | ".join(cells) + " | " + " | ".join(var) + " |")
+    # the thesis' number (Fig. 4.2) is about RP itself, the one estimator named here, not a kind of estimator
     if "rp" in r.samples and len(r.deltas) > 1:
         v0 = np.var(r.samples["rp"][0].directional, ddof=1)
         v1 = np.var(r.samples["rp"][-1].directional, ddof=1)
@@ -366,6 +367,8 @@ def variance_table(r: VarianceResult) -> str:
                 s = r.samples[n][di][pi]
                 cells += [f"{np.var(s.directional, ddof=1):.3g}", f"{s.trace_variance:.3g}"]
             lines.append(f"| {int(P)} | " + " | ".join(cells) + " |")
+    # the thesis' comparison (Fig. 4.13) is of these two named estimators, TP and BIW-LR, so the line
+    # names them rather than asking the registry which estimators weigh two parts
     if "tp" in r.samples and "lr" in r.samples:
         lines += ["", "TP against BIW-LR, trace of the covariance (thesis: TP 10–50 % below BIW-LR at P ≤ 250, chaotic case):"]
         for di, delta in enumerate(r.deltas):

@@ -134,8 +134,8 @@ class TaskSpec:
       presets: the task presets ``make`` takes (a factory's; the first is the default).
       costs: the cost names ``make`` takes (a factory's).
       default_costs: the default cost per task preset (a factory's; default: the first cost).
-      centre_box: ``(low, high)`` in policy-input coordinates: the box ``policy_init="uniform"``
-        spreads RBF centres over; None: the task has none.
+      centre_box: ``(low, high)`` in policy-input coordinates, ``policy_input_dim`` values each: the
+        box ``policy_init="uniform"`` spreads RBF centres over; None: the task has none.
       scalable_costs: the costs whose weight the setting ``cost_scale`` multiplies (a factory
         applies it).
       label: the task in words, for a sentence about its results (default: its name).
@@ -204,6 +204,11 @@ class TaskSpec:
                 raise ValueError(f"{own}.centre_box: (low, high) of one finite length with low < high, "
                                  f"got {self.centre_box!r}")
             object.__setattr__(self, "centre_box", (low, high))
+            if fixed and len(low) != self.task.problem.policy_input_dim:
+                raise ValueError(f"{own}.centre_box: has {len(low)} components per side, expected "
+                                 f"{self.task.problem.policy_input_dim} (the problem's policy_input_dim)")
+        if fixed:
+            _check_policy_settings(own, self.settings, self.task.problem.policy_input_dim)
         if not set(self.scalable_costs) <= set(self.costs):
             raise ValueError(f"{own}.scalable_costs: {self.scalable_costs} are not all costs of the task {self.costs}")
 
@@ -241,6 +246,18 @@ class TaskSpec:
         """The settings experiment preset ``protocol`` gives this task: the task preset it runs
         (``preset``) and :data:`DEFAULT_SETTINGS` with the record's own on top."""
         return {"preset": self.presets[0], **DEFAULT_SETTINGS.get(protocol, {}), **self.settings.get(protocol, {})}
+
+
+def _check_policy_settings(own: str, settings: Mapping[str, Mapping[str, Any]], input_dim: int) -> None:
+    """The settings that size the initial policy fit the problem's policy input: ``log_lambda_init``
+    one value or one per input component (a factory's problems are sized per task preset and are
+    checked when the policy is made, :func:`pipps.experiments.state.init_policy`)."""
+    for protocol, values in settings.items():
+        if values.get("log_lambda_init") is not None:
+            size = np.size(values["log_lambda_init"])
+            if size not in (1, input_dim):
+                raise ValueError(f"{own}.settings[{protocol!r}]: log_lambda_init has {size} values, expected 1 or "
+                                 f"{input_dim} (the problem's policy_input_dim)")
 
 
 def _vary(task: Task, k: float, overrides: dict[str, Any]) -> Task:
