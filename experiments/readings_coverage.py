@@ -23,10 +23,10 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     rates, iccs = (0.03, 0.1, 0.4, 0.8, 0.97), (0.05, 0.2, 0.5, 0.8)
     print(f"coverage of 95 % intervals over {args.reps} simulated cells of 30 rollouts per seed: "
-          "seed-level (profile likelihood, beta-binomial) / pooled Wilson (rollouts independent)")
+          "seed-level (likelihood ratio on effective rollouts) / pooled Wilson (rollouts independent)")
     print("| seeds | rate | " + " | ".join(f"ρ = {c}" for c in iccs) + " |")
     print("|---" * (len(iccs) + 2) + "|")
-    for n in (10, 20):
+    for n in (5, 10, 20):
         for p in rates:
             row = []
             for icc in iccs:

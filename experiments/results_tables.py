@@ -1,48 +1,56 @@
-"""Regenerate the tables embedded in docs/results.md between ``<!-- pipps:NAME -->`` and
-``<!-- /pipps -->`` markers from ``pipps table results/thesis`` (run from the repository root), so
-the page shows exactly what the command prints:
+"""Regenerate the tables embedded in docs/results.md and README.md between ``<!-- pipps:NAME -->`` and
+``<!-- /pipps -->`` markers from ``pipps table`` on the committed results (run from the repository
+root), so the pages show exactly what the command prints:
 
     python experiments/results_tables.py
 
-A maintainer's tool that rewrites docs/results.md in place, but only the blocks between those
-markers: the rest of the page is kept as it is. A page with none of the markers is refused (one
-line) before any table is computed. The new page is written to a temporary file beside it and
-moved into place in one step, so the page is never seen half-written.
+``glance`` (docs/results.md, "At a glance") and ``readme`` (README.md, a subset of its rows) gather the
+"every reading" rows of Tables 4.1–4.4, the Gaussian-shaping rows of Table 4.3 and the PILCO rows
+with the policy-input noise term (``results/pilco-noise``, read with ``--by pilco_policy_noise``)
+into one table with the same columns; the other blocks are ``pipps table results/thesis`` output
+as printed.
+
+A maintainer's tool that rewrites the pages in place, but only the blocks between those markers:
+the rest of each page is kept as it is. docs/results.md without any of the markers is refused (one
+line) before any table is computed; README.md is rewritten only where it has markers. Each new page
+is written to a temporary file beside it and moved into place in one step, so a page is never seen
+half-written.
 """
 import os, re, subprocess, sys
 
 PAGE = "docs/results.md"
+README = "README.md"
 
 def refuse(line):
     print(f"results_tables.py: error: {line}", file=sys.stderr)
     sys.exit(2)
 
-def read_page():
+def read_page(page=PAGE):
     """The page's text; exits with one line if it cannot be read or holds no ``<!-- pipps:NAME -->`` marker."""
     try:
-        text = open(PAGE).read()
+        text = open(page).read()
     except OSError as err:
-        refuse(f"cannot read {PAGE}: {err.strerror or err}")
+        refuse(f"cannot read {page}: {err.strerror or err}")
     if not re.search(r"<!-- pipps:[^ ]+ -->", text):
-        refuse(f"{PAGE} has no <!-- pipps:NAME --> markers; this tool rewrites only the blocks between them")
+        refuse(f"{page} has no <!-- pipps:NAME --> markers; this tool rewrites only the blocks between them")
     return text
 
-def write_page(text):
+def write_page(text, page=PAGE):
     """Replace the page whole: a temporary file beside it, then ``os.replace``."""
-    tmp = os.path.join(os.path.dirname(PAGE), f".{os.path.basename(PAGE)}.tmp-{os.getpid()}")
+    tmp = os.path.join(os.path.dirname(page), f".{os.path.basename(page)}.tmp-{os.getpid()}")
     try:
         with open(tmp, "w") as f:
             f.write(text)
-        os.replace(tmp, PAGE)
+        os.replace(tmp, page)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
 
 read_page()  # before any table is computed
 
-def table_output(*args):
-    return subprocess.run(["pipps", "table", "results/thesis", *args], capture_output=True, text=True,
-                          env={**__import__("os").environ, "JAX_PLATFORMS": "cpu"}).stdout.split("\n")
+def table_output(*args, folders=("results/thesis",)):
+    return subprocess.run(["pipps", "table", *folders, *args], capture_output=True, text=True,
+                          env={**os.environ, "JAX_PLATFORMS": "cpu"}).stdout.split("\n")
 
 def block(lines, start):
     i = next(i for i, l in enumerate(lines) if l.startswith(start))
@@ -50,6 +58,55 @@ def block(lines, start):
     while j < len(lines) and lines[j].startswith("|"):
         out.append(lines[j]); j += 1
     return out
+
+def cells(line):
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+GLANCE_READINGS = ("per trial, return", "per seed, mean return", "final system trial, return",
+                   "per trial, physical", "per seed, physical", "final system trial, physical")
+
+def every_reading_rows(lines, prefix, method_label=None, keep=lambda row: True):
+    """The rows of the first "every reading" block in ``lines`` as dicts keyed by column name, the cell
+    named ``prefix`` + the table's row; a ``--by`` block's value column picks ``method_label`` rows
+    (the value ``True``). [] where there is no such block."""
+    try:
+        i = next(i for i, l in enumerate(lines) if ", every reading [" in l)
+    except StopIteration:
+        return []
+    head = [h.strip("*") for h in cells(lines[i + 2])]
+    out = []
+    for line in lines[i + 4:]:
+        if not line.startswith("|"):
+            break
+        row = dict(zip(head, cells(line)))
+        if len(head) > 4 and head[2] not in ("seeds",):  # a --by block: | row | method | VALUE | seeds | ...
+            if row[head[2]] != "True":
+                continue
+            row["method"] = method_label
+        if keep(row):
+            row["cell"] = prefix + row[head[0]]
+            out.append(row)
+    return out
+
+def outside(thesis, rate):
+    """Whether the thesis' value lies outside our interval ("0.49 [0.23, 0.77]")."""
+    m = re.search(r"\[([-0-9.]+), ([-0-9.]+)\]", rate or "")
+    return bool(m) and thesis not in ("–", "") and not float(m[1]) <= float(thesis) <= float(m[2])
+
+def glance_table(rows):
+    """One table of ``rows``; `!` after the thesis' value where it lies outside the headline's interval
+    (per trial by the return, or physically where a task has no threshold)."""
+    rows = [dict(r) for r in rows]
+    for r in rows:
+        headline = r.get(GLANCE_READINGS[0], "–")
+        headline = r.get(GLANCE_READINGS[3], "–") if headline == "–" else headline
+        if outside(r["thesis"], headline):
+            r["thesis"] += " !"
+    head = ["cell", "method", "seeds", "thesis", *GLANCE_READINGS]
+    lines = ["| " + " | ".join(("**" + h + "**") if h == GLANCE_READINGS[0] else h for h in head) + " |",
+             "|---" * len(head) + "|"]
+    lines += ["| " + " | ".join(r.get(h, "–") for h in head) + " |" for r in rows]
+    return lines
 
 t41 = table_output("--table", "4.1")
 t41rp = table_output("--table", "4.1", "--compare", "tp,rp")
@@ -61,16 +118,38 @@ blocks = {
     "t41-k1": head + [r for r in rows if r.startswith("| k = 1 |")],
     "t41-diff-rp": block(t41rp, "**Table 4.1 — cart-pole swing-up, Angle Cost**, TP − RP"),
 }
-for name in ("4.2", "4.3", "4.4", "del"):
-    out = table_output("--table", name)
-    try:
-        blocks["t" + name.replace(".", "")] = [l for l in out if l.strip()][:200]
-    except StopIteration:
-        pass
-s = read_page()  # again: the page may have been edited while the tables ran
-for name, lines in blocks.items():
-    pat = re.compile(rf"(<!-- pipps:{name} -->\n).*?(\n<!-- /pipps -->)", re.S)
-    if pat.search(s):
-        s = pat.sub(lambda m: m.group(1) + "\n".join(lines) + m.group(2), s)
-write_page(s)
-print("filled", [n for n in blocks if f"<!-- pipps:{n} -->" in s])
+outs = {name: table_output("--table", name) for name in ("4.2", "4.3", "4.4", "del")}
+for name, out in outs.items():
+    blocks["t" + name.replace(".", "")] = [l for l in out if l.strip()][:200]
+try:
+    blocks["t42-every"] = block(outs["4.2"], "**Table 4.2 — cart-pole swing-up, Tip Cost**, every reading")
+except StopIteration:  # no Table 4.2 results
+    pass
+TERM = "PILCO + policy-input noise term"
+glance = (every_reading_rows(t41, "Table 4.1, ")
+          + every_reading_rows(outs["4.2"], "Table 4.2, Tip Cost, ")
+          + every_reading_rows(outs["4.3"], "Table 4.3, ", keep=lambda r: r["method"] in ("GTP", "GLR"))
+          + every_reading_rows(outs["4.4"], "Table 4.4, ")
+          + every_reading_rows(outs["del"], "DEL, ")
+          + every_reading_rows(table_output("--table", "4.1", "--by", "pilco_policy_noise",
+                                            folders=("results/pilco-noise", "results/thesis")), "Table 4.1, ", TERM)
+          + every_reading_rows(table_output("--table", "4.2", "--by", "pilco_policy_noise",
+                                            folders=("results/pilco-noise", "results/thesis")), "Table 4.2, Tip Cost, ", TERM))
+README_METHODS = ("TP", "PILCO", "RP", "GTP", TERM)
+if glance:
+    blocks["glance"] = glance_table(glance)
+    blocks["readme"] = glance_table([r for r in glance if r["method"] in README_METHODS
+                                     and not (r["method"] == "RP" and "k = 1" not in r["cell"])])
+filled = []
+for page in (PAGE, README):
+    if page == README and not (os.path.exists(page) and "<!-- pipps:" in open(page).read()):
+        continue
+    s = read_page(page)  # again: the page may have been edited while the tables ran
+    for name, lines in blocks.items():
+        # the block's old lines, if any, up to the nearest end marker (an empty block matches too)
+        pat = re.compile(rf"(<!-- pipps:{name} -->\n)(?:.*?\n)??(<!-- /pipps -->)", re.S)
+        if pat.search(s):
+            s = pat.sub(lambda m: m.group(1) + "".join(line + "\n" for line in lines) + m.group(2), s)
+            filled.append(name)
+    write_page(s, page)
+print("filled", filled)

@@ -370,11 +370,16 @@ def off_range(rec, c: Chart, name: str, x, y, color) -> None:
 
 def markers(rec, c: Chart, name: str, x, y, color, shape: str = "diamond", *, size: float = 7.0) -> None:
     """Hollow markers at the data points inside the plot box: ``diamond`` (half-diagonal ``size``
-    pixels) or ``bar`` (a short horizontal stroke ``2·size`` wide)."""
+    pixels), ``bar`` (a short horizontal stroke ``2·size`` wide), or ``square``, ``triangle``,
+    ``cross``, ``plus`` (half-width ``size``)."""
     p = c.xy(x, y).reshape(-1, 2)
     p = p[c.inside(p)]
     _strips(rec, f"{c.path}/data/{name}", [q + d for q in p for d in _shape(shape, size)], color,
             -1.1 if shape == "diamond" else -1.6, 40.0)
+
+
+#: the hollow marker shapes :func:`markers` and legend keys draw (as line strips)
+SHAPES = ("diamond", "bar", "square", "triangle", "cross", "plus")
 
 
 def _shape(shape: str, size: float) -> list[np.ndarray]:
@@ -382,7 +387,15 @@ def _shape(shape: str, size: float) -> list[np.ndarray]:
         return [np.array([[0, -size], [size, 0], [0, size], [-size, 0], [0, -size]], dtype=float)]
     if shape == "bar":
         return [np.array([[-size, 0], [size, 0]], dtype=float)]
-    raise ValueError(f"marker shape {shape!r}")
+    if shape == "square":
+        return [np.array([[-size, -size], [size, -size], [size, size], [-size, size], [-size, -size]], dtype=float)]
+    if shape == "triangle":  # apex up (view y grows downwards)
+        return [np.array([[0, -size], [size, size], [-size, size], [0, -size]], dtype=float)]
+    if shape == "cross":
+        return [np.array([[-size, -size], [size, size]], dtype=float), np.array([[-size, size], [size, -size]], dtype=float)]
+    if shape == "plus":
+        return [np.array([[-size, 0], [size, 0]], dtype=float), np.array([[0, -size], [0, size]], dtype=float)]
+    raise ValueError(f"marker shape {shape!r}; one of {SHAPES}")
 
 
 def text(rec, c: Chart, name: str, x, y, labels: Sequence[str], *, above: bool = False) -> None:
@@ -453,12 +466,13 @@ def note(rec, c: Chart, name: str, text: str, *, row: int = 0) -> None:
 
 @dataclasses.dataclass(frozen=True)
 class Key:
-    """One legend entry: its text, colour and how the series is drawn (line, dash, point, band, diamond, bar, interval)."""
+    """One legend entry: its text, colour and how the series is drawn (line, dash, point, band, interval, or a
+    marker shape of :data:`SHAPES`)."""
 
     label: str
     color: tuple[int, ...]
     style: str = "line"
-    size: float = 3.5  # a point's radius (UI points)
+    size: float = 3.5  # a point's radius, a marker's half-width (UI points; diamond and bar keys: 7)
 
 
 def legend_chart(path: str, keys: Sequence[Key], width: float) -> Chart:
@@ -504,8 +518,9 @@ def draw_legend(rec, c: Chart, keys: Sequence[Key]) -> None:
                 _strips(rec, path, [sample], k.color, 6.0)
             elif k.style == "point":
                 _dots(rec, path, [mid], k.color, -k.size)
-            elif k.style in ("diamond", "bar"):
-                _strips(rec, path, [mid + d for d in _shape(k.style, 7.0)], k.color, -1.1 if k.style == "diamond" else -1.6)
+            elif k.style in SHAPES:
+                size = 7.0 if k.style in ("diamond", "bar") else k.size
+                _strips(rec, path, [mid + d for d in _shape(k.style, size)], k.color, -1.1 if k.style == "diamond" else -1.6)
             elif k.style == "interval":
                 _strips(rec, path, [[mid - [0, 8], mid + [0, 8]], [mid - [4, 8], mid + [4, -8]], [mid - [4, -8], mid + [4, 8]]],
                         k.color, -1.0)

@@ -229,7 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="list what would run, what is already complete or interrupted, and the estimated cost")
     _add_experiment_options(sw, single=False)
 
-    tb = sub.add_parser("table", help="success rates with 95%% Wilson intervals next to the thesis' tables")
+    tb = sub.add_parser("table", help="success rates under every reading (per trial, per seed, final system trial; "
+                                      "by the return threshold and by the physical criterion) with 95%% intervals "
+                                      "over seeds, next to the thesis' tables")
     tb.add_argument("results", nargs="*", default=["runs"], help="result files or folders (default: runs)")
     tb.add_argument("--table", default=None, type=opt.one_of("table", opt.tables),
                     help="one table (default: every table with results)")
@@ -250,9 +252,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="where to find a task of your own whose results are read, when its stored source has moved "
                          "(repeatable)")
     tb.add_argument("--by", default=None, metavar="SETTING",
-                    help="compare the results by one setting's value (e.g. estimator_choices): each cell's rate per "
-                         "value side by side, with the difference of two values and Fisher's p; results that depart "
-                         "from the preset only in SETTING count without --custom")
+                    help="compare the results by one setting's value (e.g. estimator_choices): each cell's headline "
+                         "rate per value side by side, every reading per value with its interval over seeds and, with "
+                         "two values, their difference under every reading (Newcombe's interval, permutation p over "
+                         "seeds) and paired by seed; results that depart from the preset only in SETTING count "
+                         "without --custom")
 
     pl = sub.add_parser("plot", help="write a rerun recording (.rrd) of results or a study; --png renders it",
                         description="Writes a rerun recording of experiment results (files or folders) or of one study "
@@ -261,9 +265,10 @@ def build_parser() -> argparse.ArgumentParser:
                                     "panels) and docs/experiments.md says which thesis figure each corresponds to.")
     pl.add_argument("results", nargs="+", help="result files or folders, or one study file")
     pl.add_argument("--figure", default=None, choices=FIGURES,
-                    help="overview (default for results: the interactive four-panel recording), cells (success rate "
-                         "with 95%% interval per method against k, thesis' rates marked), curves (evaluated return "
-                         "per trial of each table cell: median, quartiles, seeds), diagnostics (final-trial predictions, "
+                    help="overview (default for results: the interactive four-panel recording), cells (per method "
+                         "against k: the headline success rate with its 95%% interval over seeds, the per-trial "
+                         "physical rate as a bar, the per-seed readings as small dots, thesis' rates marked), curves "
+                         "(evaluated return per trial of each table cell: median, quartiles, seeds), diagnostics (final-trial predictions, "
                          "k_LR and gradient variances per step); landscape, variance, bench (a study file's figure, "
                          "its default)")
     pl.add_argument("--table", default=None, type=opt.one_of("table", opt.tables),
@@ -759,10 +764,12 @@ def _print_tables(args, tables, counted) -> int:
 
 
 def _print_comparison(args, tables, counted) -> int:
-    """pipps table --by: each table's cells per value of the setting (render_comparison), then the
-    per-seed rows and curves of each value's results. Returns the number of tables printed."""
-    from pipps.reporting.tables import (collect, render_cell_curves, render_comparison, render_paired, render_seeds,
-                                        split_by)
+    """pipps table --by: each table's cells per value of the setting (render_comparison), every
+    reading per value (render_group_readings) and, with two values, their difference under every
+    reading (render_group_differences) and paired by seed (render_paired); then the per-seed rows
+    and curves of each value's results. Returns the number of tables printed."""
+    from pipps.reporting.tables import (collect, render_cell_curves, render_comparison, render_group_differences,
+                                        render_group_readings, render_paired, render_seeds, split_by)
 
     groups = split_by(counted, args.by)
     printed = 0
@@ -772,10 +779,11 @@ def _print_comparison(args, tables, counted) -> int:
             continue
         print(render_comparison(t, args.by, cells))
         print()
-        paired = render_paired(t, args.by, cells)
-        if paired:
-            print(paired)
-            print()
+        for render in (render_group_readings, render_group_differences, render_paired):
+            text = render(t, args.by, cells)
+            if text:
+                print(text)
+                print()
         printed += 1
         for value, rows in groups:
             for wanted, render in ((args.per_seed, render_seeds), (args.curves, render_cell_curves)):

@@ -534,3 +534,54 @@ def test_cli_plot_writes_an_svg_beside_the_recording_and_keeps_an_existing_one(t
     assert main(["plot", *map(str, UNICYCLE), "--out", str(tmp_path / "o.rrd"), "--svg", str(tmp_path / "o.svg")]) == 2
     assert "the overview is an interactive recording" in capsys.readouterr().err
     assert not (tmp_path / "o.rrd").exists() and not (tmp_path / "o.svg").exists()
+
+
+def test_cells_figure_draws_every_reading_of_a_hand_made_cell_in_the_svg(tmp_path):
+    """Five TP seeds whose readings all differ: the headline (per trial, return) as the large dot with
+    its interval, the per-trial physical rate as a bar, and each per-seed reading as a small marker of
+    its own shape at its own place right of the headline, at the fraction of seeds that pass it; each
+    named in the legend."""
+    from pipps.reporting.figures import DOT_SIZE, SEED_DOTS, cells_figure, record_cells
+    from pipps.reporting.readings import BY_NAME
+
+    # (rollouts below the threshold, rollouts balanced) of 10, the final system trial's return and balance
+    seeds = [(10, 10, 10.0, True), (9, 8, 10.0, False), (7, 7, 20.0, False), (3, 5, 20.0, False), (0, 1, 20.0, False)]
+    summaries = []
+    for s, (passes, balanced, system, flag) in enumerate(seeds):
+        row = _summary("tp", 1.0, s, [30, 10.0], final=(passes, balanced))
+        row["per_seed"] = seed_values(s, np.where(np.arange(10) < passes, 10.0, 20.0), np.arange(10) < balanced,
+                                      system, 15.0, 0.5, flag)
+        summaries.append(row)
+    expected = {"seed_return": 3 / 5,  # mean returns 10, 11, 13, 17, 20
+                "system_trial": 2 / 5, "seed_physical": 4 / 5,  # balanced 1.0, 0.8, 0.7, 0.5 (passes), 0.1
+                "system_physical": 1 / 5}
+    assert len(set(expected.values())) == 4
+    table = TABLES["4.1"]
+    results = collect(table, summaries)
+    record_cells([(table, results)], tmp_path / "t.svg")
+    fig = cells_figure([(table, results)])
+    c = fig.charts[0]
+    w, _, circles, lines, texts = read_svg(tmp_path / "t.svg")
+    left = (w - fig.columns * c.size[0]) / 2
+
+    def page(x, y):
+        return c.xy(x, y) + [left, c.size[1]]
+
+    panel = circles[circles[:, 1] < c.size[1]]  # the legend strip lies below the panel
+    (head,) = panel[panel[:, 2] == 4.0]  # the headline: 29 of 50 rollouts below the threshold, seeds averaged
+    np.testing.assert_allclose(head[1], page(0.0, 29 / 50)[1], atol=0.01)  # the SVG keeps 2 decimals
+    assert len(SEED_DOTS) == len(expected) and len({shape for _, _, shape in SEED_DOTS}) == len(SEED_DOTS)
+    strokes = {"square": [5], "triangle": [4], "cross": [2, 2], "plus": [2, 2]}  # polylines and their points
+    for name, offset, shape in SEED_DOTS:
+        want = np.array([head[0] + offset, page(0.0, expected[name])[1]])
+        # the marker's polylines: those whose bounding box is centred there, DOT_SIZE on each side
+        here = [p for p in lines if np.allclose((p.min(0) + p.max(0)) / 2, want, atol=0.01)
+                and np.isclose((p.max(0) - p.min(0)).max(), 2 * DOT_SIZE, atol=0.02)]
+        assert sorted(len(p) for p in here) == strokes[shape], (name, shape, here)
+    # the per-trial physical rate: a bar through the headline's x at 31 of 50 rollouts balanced
+    y_bal = page(0.0, 31 / 50)[1]
+    assert any(len(p) == 2 and np.allclose(p[:, 1], y_bal, atol=0.01) and abs(p[:, 0].mean() - head[0]) < 0.01
+               for p in lines)
+    words = [t for _, _, t in texts]
+    for name, _, _ in SEED_DOTS:
+        assert f"ours: {BY_NAME[name].label} (fraction of seeds, no interval)" in words

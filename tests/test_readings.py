@@ -57,8 +57,9 @@ def test_rates_are_the_means_over_seeds_with_seed_level_intervals():
 
 
 def test_clustered_interval_at_the_boundary_is_the_likelihood_bound_of_one_trial_per_seed():
-    """Every seed at 0: the profile likelihood is maximal at ρ → 1 (each seed all-or-nothing), where
-    L(μ) = (1 − μ)^n, so the upper end solves 2n·log(1/(1 − μ)) = χ²: μ = 1 − exp(−χ²/(2n))."""
+    """Every seed at 0: at any μ the beta-binomial likelihood is maximal at ρ → 1 (each seed
+    all-or-nothing), so n_eff = n and the statistic is 2n·KL(0 ‖ μ) = 2n·log(1/(1 − μ)): the upper
+    end solves it = χ², μ = 1 − exp(−χ²/(2n)), the likelihood-ratio bound of n Bernoulli seeds."""
     for n in (5, 10, 20):
         lo, hi = clustered_interval([0] * n, [30] * n)
         assert lo == 0.0
@@ -78,6 +79,48 @@ def test_clustered_interval_narrows_to_the_binomial_one_when_seeds_agree():
     assert hi - lo < (wilson_interval(10, 20)[1] - wilson_interval(10, 20)[0]) / 2
 
 
+#: seed sets on which a beta-binomial fit is poor, so its maximum-likelihood rate lies far from the mean
+#: of the per-seed fractions: (passes, rollouts) per seed. The first three put the mean outside the
+#: beta-binomial's own profile-likelihood interval (18 seeds at 1/30 and 2 at 30/30: mean 0.13,
+#: that interval [0.14, 0.41]); the last two mix rollout counts.
+ADVERSARIAL = [([1] * 18 + [30] * 2, [30] * 20), ([29] * 18 + [0] * 2, [30] * 20), ([2] * 18 + [30] * 2, [30] * 20),
+               ([0] * 9 + [30], [30] * 10), ([15] * 19 + [0], [30] * 20), ([1] * 3 + [30], [30] * 4),
+               ([0] * 15 + [1] * 5, [100] * 15 + [1] * 5), ([4, 24], [4, 28])]
+
+
+def _per_trial_rate(passes, rollouts):
+    per_seed = [seed_values(s, np.where(np.arange(m) < x, 10.0, 20.0), np.ones(m, bool), None, 15.0, 0.5)
+                for s, (x, m) in enumerate(zip(passes, rollouts))]
+    return rd.rate("trial_return", per_seed)
+
+
+def test_the_printed_per_trial_rate_lies_inside_its_interval_on_adversarial_seed_sets():
+    rng = np.random.default_rng(7)
+    cases = list(ADVERSARIAL)
+    for _ in range(40):  # mixtures: most seeds near one rate, a few at the other end
+        n = int(rng.integers(3, 21))
+        near, far = int(rng.integers(0, 31)), int(rng.choice([0, 30]))
+        cases.append((np.where(rng.random(n) < 0.85, near, far).tolist(), [30] * n))
+    for passes, rollouts in cases:
+        got = _per_trial_rate(passes, rollouts)
+        assert got.rate == pytest.approx(np.mean(np.divide(passes, rollouts)))
+        lo, hi = got.interval
+        assert lo <= got.rate <= hi, (passes, rollouts, got.rate, got.interval)
+        point, ends = got.text().split(" [")
+        assert float(ends.split(", ")[0]) <= float(point) <= float(ends.rstrip("]").split(", ")[1])  # as printed
+
+
+def test_clustered_interval_is_the_binomial_likelihood_ratio_interval_on_the_effective_rollouts():
+    """At each end μ the statistic 2 n_eff KL(p̄ ‖ μ) reaches χ², n_eff from the ρ profiled at μ."""
+    x, m = np.array([1] * 18 + [30] * 2), np.full(20, 30.0)
+    p_bar = float(np.mean(x / m))
+    for end in clustered_interval(x, m):
+        rho = rd._profile(end, x, m)[1]
+        kl = p_bar * math.log(p_bar / end) + (1 - p_bar) * math.log((1 - p_bar) / (1 - end))
+        assert 2 * rd.effective_rollouts(rho, m) * kl == pytest.approx(CHI2_95, rel=1e-5)
+    assert rd.effective_rollouts(0.0, m) == 600 and rd.effective_rollouts(1.0, m) == 20
+
+
 def _coverage(p, icc, seeds, reps, rng, interval):
     s = 1 / icc - 1
     hits = 0
@@ -94,8 +137,9 @@ COVERAGE_CASES = [(0.1, 0.2, 10), (0.5, 0.5, 10), (0.9, 0.8, 10), (0.4, 0.05, 20
 
 
 def _check_coverage(cases, reps):
-    """Coverage within the accepted band: the nominal 95 % ± 5 points (the approximation a profile
-    likelihood at 10–20 seeds makes, docs/results.md), widened by 3 Monte Carlo standard errors."""
+    """Coverage within the accepted band: the nominal 95 % ± 5 points (the approximation a
+    likelihood-ratio interval with an estimated ρ makes at 10–20 seeds, docs/results.md), widened by
+    3 Monte Carlo standard errors."""
     rng = np.random.default_rng(20261126)
     se = math.sqrt(0.95 * 0.05 / reps)
     for p, icc, n in cases:
@@ -157,11 +201,14 @@ def _stored_readings(path):
         returns = last["eval_returns"][()]
         end = last["states"][()][-10:]  # the final second of the system trial: pole within 0.3 rad of upright, cart within 0.5 m
         balanced = np.all(np.abs(np.mod(end[:, 3], 2 * np.pi) - np.pi) <= 0.3) and np.all(np.abs(end[:, 0]) <= 0.5)
+        rollouts_balanced = last["eval_balanced"][()].astype(bool)  # the stored per-rollout physical verdicts
         return {"trial_return": float(np.mean(returns < 15.0)), "seed_return": float(np.mean(returns) < 15.0),
-                "system_trial": float(np.sum(last["costs"][()]) < 15.0), "system_physical": float(balanced)}
+                "system_trial": float(np.sum(last["costs"][()]) < 15.0), "system_physical": float(balanced),
+                "trial_physical": float(np.mean(rollouts_balanced)),
+                "seed_physical": float(np.mean(rollouts_balanced) >= 0.5)}  # the cart-pole asks half the rollouts
 
 
-def test_a_hand_made_result_set_tabulates_as_computed_by_hand(tmp_path):
+def test_a_hand_made_result_set_tabulates_as_computed_by_hand(tmp_path, capsys):
     """Real files through the command line: one as stored, one whose every final rollout sits exactly
     at the threshold (counted as failing), one unfinished (not counted)."""
     from pipps.cli import main
@@ -182,14 +229,28 @@ def test_a_hand_made_result_set_tabulates_as_computed_by_hand(tmp_path):
     from pipps.reporting.tables import TABLES, collect, judge_counted
     from pipps.experiments.results import read_summary
 
+    from pipps.experiments.results import ResultError
+
+    with pytest.raises(ResultError):  # the unfinished file has no summary to count
+        read_summary(tmp_path / "c.h5")
     judged, errors = judge_counted([read_summary(tmp_path / n) for n in ("a.h5", "b.h5")])
     assert not errors
     cell = next(r for r in collect(TABLES["4.1"], judged) if r.n)
     got = cell.by_reading
-    for name in ("trial_return", "seed_return", "system_trial", "system_physical"):
+    assert set(got) == {rd.name for rd in rd.READINGS}
+    for name in got:
         assert got[name].values == tuple(h[name] for h in by_hand), name
+        assert got[name].rate == pytest.approx(np.mean([h[name] for h in by_hand])), name
     assert cell.rate == np.mean([h["trial_return"] for h in by_hand])
+    # the command line over the folder counts a and b and names c as not counted
     assert main(["table", str(tmp_path), "--table", "4.1"]) == 0
+    out = capsys.readouterr().out
+    assert ("2 complete results of the thesis preset counted; 0 complete results of other settings and 1 incomplete "
+            "or corrupt files not counted") in out
+    (left_out,) = [line for line in out.splitlines() if line.startswith("  not counted:")]
+    assert str(tmp_path / "c.h5") in left_out
+    row = next(line for line in out.splitlines() if line.startswith("| k = 9 | TP | 2 |"))  # every reading, 2 seeds
+    assert got["trial_physical"].text() in row and got["seed_physical"].text() in row
 
 
 #: docs/results.md's Table 4.1 block, on the seeds it was first counted over: (k, method, seeds) ->

@@ -1,9 +1,11 @@
 """Figures of learning experiments, as rerun recordings (:mod:`pipps.charts`; ``pipps plot --figure``).
 
-* :func:`record_cells` — the success-rate tables as a chart: per table, our rate by the physical
-  criterion with its 95 % Wilson interval for each method against the table's rows (k), the rate by
-  the thesis' return threshold beside it, and the thesis' rate (Tables 4.1–4.4; the thesis has no
-  such figure);
+* :func:`record_cells` — the success-rate tables as a chart: per table, for each method against the
+  table's rows (k), the headline rate (per trial by the return threshold; by the physical criterion
+  where a task has no threshold) with its 95 % interval over seeds, the per-trial physical rate as a
+  bar, every per-seed reading as a small marker of its own shape beside them (fractions of seeds, no
+  interval), and the
+  thesis' rate (Tables 4.1–4.4; the thesis has no such figure);
 * :func:`record_curves` — one panel per table cell: the evaluated return per trial over the cell's
   seeds (median, interquartile band, each seed), with the success threshold (the learning-efficiency
   plots of thesis Figs. 4.16/4.17, per cell); for a task without a return threshold (the unicycle),
@@ -28,6 +30,7 @@ import numpy as np
 from pipps import charts as ch
 from pipps.experiments.methods import METHODS
 from pipps.experiments.records import ExperimentResult, MomentPrediction, ParticlePrediction
+from pipps.reporting.readings import reading
 from pipps.reporting.tables import Cell, CellResult, Table, quartiles, seed_returns
 from pipps.reporting.verdicts import criterion, reads_upright
 
@@ -66,8 +69,20 @@ def cells_figure(tables: list[tuple[Table, list[CellResult]]]) -> ch.Figure:
             ch.Key(f"ours: fraction of {headline}, 95 % interval over seeds (label: seeds)", ch.GREY, "interval")]
     if per_trial_return:
         keys.append(ch.Key("ours: fraction of rollouts meeting the physical criterion", ch.GREY, "bar"))
+    drawn = {name for _, rs in tables for r in rs if r.n for name in r.by_reading}
+    keys += [ch.Key(f"ours: {reading(name).label} (fraction of seeds, no interval)", ch.GREY, shape, DOT_SIZE)
+             for name, _, shape in SEED_DOTS if name in drawn]
     keys.append(ch.Key("thesis (100 seeds)", ch.GREY, "diamond"))
     return ch.figure(charts, 1 if len(charts) == 1 else 2, keys, "cells/legend")
+
+
+#: the per-seed readings drawn beside each headline, in this order, as small hollow markers this many
+#: pixels right of it (past the headline's cap and the physical bar), each its own shape; each is a
+#: fraction of seeds
+SEED_DOTS = (("seed_return", 13.0, "square"), ("system_trial", 22.0, "triangle"),
+             ("seed_physical", 31.0, "cross"), ("system_physical", 40.0, "plus"))
+#: the half-width of those markers (UI points), against the headline's radius 4
+DOT_SIZE = 3.5
 
 
 def _methods_with_results(table: Table, results: list[CellResult]) -> list[str]:
@@ -104,10 +119,22 @@ def record_cells(tables: list[tuple[Table, list[CellResult]]], out: str | Path) 
                 if physical:
                     ch.markers(rec, c, f"{m}/physical_rate", [a for a, _ in physical], [b for _, b in physical], color,
                                "bar")
+                _seed_dots(rec, c, m, x, [r for _, r in have], color)
                 thesis = [(ri + _dodge(mi, len(methods)), r.cell.thesis) for ri, r in rows if r.cell.thesis is not None]
                 if thesis:
                     ch.markers(rec, c, f"{m}/thesis", [a for a, _ in thesis], [b for _, b in thesis], color, "diamond")
     return Path(out)
+
+
+def _seed_dots(rec, c: ch.Chart, method: str, x: np.ndarray, results: list[CellResult], color) -> None:
+    """Each per-seed reading of each cell (:data:`SEED_DOTS`) as a small dot right of the cell's headline
+    at ``x``: the fraction of seeds that pass it, without an interval."""
+    per_unit = c.xy(1.0, 0.0)[0] - c.xy(0.0, 0.0)[0]  # pixels per unit of the categorical x axis
+    for name, offset, shape in SEED_DOTS:
+        got = [(xi + offset / per_unit, r.by_reading[name].rate) for xi, r in zip(x, results) if name in r.by_reading]
+        if got:
+            ch.markers(rec, c, f"{method}/{name}", [a for a, _ in got], [b for _, b in got], color, shape,
+                       size=DOT_SIZE)
 
 
 # -- learning curves per cell -----------------------------------------------------------------------------

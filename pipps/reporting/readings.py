@@ -27,9 +27,11 @@ stand alone.
 
 **Intervals respect the seeds.** The rollouts of one seed share a policy and are not independent,
 so a per-trial rate's interval is computed over seeds: :func:`clustered_interval` is the
-profile-likelihood interval of a beta-binomial model, in which each seed has its own success
-probability and the intra-seed correlation is estimated from how much the seeds differ. Its coverage on simulated clustered data of known rate is measured in
-``tests/test_readings.py`` and docs/results.md. A per-seed reading is one Bernoulli verdict per
+likelihood-ratio interval of the printed rate (the mean of the per-seed fractions) on the effective
+number of independent rollouts, which follows from the intra-seed correlation, estimated from how
+much the seeds differ (a beta-binomial profile likelihood); it always contains the printed rate. Its
+coverage on simulated clustered data of known rate is measured in ``tests/test_readings.py`` and
+docs/results.md. A per-seed reading is one Bernoulli verdict per
 seed: the plain Wilson interval. A difference between two cells (:func:`compare`) gets Newcombe's
 interval built from the two cells' intervals and a permutation test over seeds on the per-seed
 values.
@@ -137,44 +139,79 @@ CHI2_95 = 3.841458820694124
 _LOGIT_RHO = (-14.0, 14.0)
 
 
-def _beta_binomial_loglik(mu: float, rho: float, x: np.ndarray, m: np.ndarray) -> float:
+def _beta_binomial_loglik(mu: float, rho, x: np.ndarray, m: np.ndarray):
     """log L(μ, ρ) of seeds with x_i of m_i rollouts successful, up to a constant: the beta-binomial,
     success probabilities varying over seeds as Beta with mean μ and intra-seed correlation ρ
-    (a = μ(1 − ρ)/ρ, b = (1 − μ)(1 − ρ)/ρ)."""
+    (a = μ(1 − ρ)/ρ, b = (1 − μ)(1 − ρ)/ρ). A float for a scalar ρ, an array for an array of ρ."""
     from scipy.special import betaln
 
-    s = (1.0 - rho) / rho
+    r = np.asarray(rho, dtype=float)
+    s = ((1.0 - r) / r)[..., None]
     a, b = mu * s, (1.0 - mu) * s
-    return float(np.sum(betaln(x + a, m - x + b) - betaln(a, b)))
+    out = np.sum(betaln(x + a, m - x + b) - betaln(a, b), axis=-1)
+    return float(out) if r.ndim == 0 else out
 
 
-def _profile(mu: float, x: np.ndarray, m: np.ndarray) -> float:
-    """max over ρ of log L(μ, ρ): a coarse grid over logit ρ, then Brent's method around its best point."""
+def _profile(mu: float, x: np.ndarray, m: np.ndarray) -> tuple[float, float]:
+    """(max over ρ of log L(μ, ρ), the ρ that attains it): a coarse grid over logit ρ, then Brent's
+    method around its best point."""
     from scipy.optimize import minimize_scalar
     from scipy.special import expit
 
     grid = np.linspace(*_LOGIT_RHO, 29)
-    values = [_beta_binomial_loglik(mu, expit(t), x, m) for t in grid]
-    t0 = grid[int(np.argmax(values))]
+    values = _beta_binomial_loglik(mu, expit(grid), x, m)
+    best = int(np.argmax(values))
+    t0 = grid[best]
     lo, hi = max(_LOGIT_RHO[0], t0 - 1.0), min(_LOGIT_RHO[1], t0 + 1.0)
     res = minimize_scalar(lambda t: -_beta_binomial_loglik(mu, expit(t), x, m), bounds=(lo, hi),
                           method="bounded", options={"xatol": 1e-5})
-    return max(-float(res.fun), float(np.max(values)))
+    if -float(res.fun) >= values[best]:
+        return -float(res.fun), float(expit(res.x))
+    return float(values[best]), float(expit(t0))
+
+
+def _bernoulli_kl(p: float, q: float) -> float:
+    """KL(Bernoulli(p) ‖ Bernoulli(q)) for 0 < q < 1 (0 · log 0 = 0)."""
+    out = 0.0
+    if p > 0.0:
+        out += p * math.log(p / q)
+    if p < 1.0:
+        out += (1.0 - p) * math.log((1.0 - p) / (1.0 - q))
+    return out
+
+
+def effective_rollouts(rho: float, rollouts: np.ndarray) -> float:
+    """Kish's effective sample size of the mean of per-seed fractions: the number of independent
+    rollouts whose binomial proportion has the variance of ``mean(x_i / m_i)``, n² / Σ (ρ + (1 − ρ)/m_i).
+    It holds for any distribution of the seeds' success probabilities with intra-seed correlation ρ
+    (Var p_i = ρ μ(1 − μ)): ρ = 0 gives Σ m_i for equal m_i (every rollout independent), ρ = 1 gives
+    n (each seed one all-or-nothing trial)."""
+    m = np.asarray(rollouts, dtype=float)
+    return float(m.size ** 2 / np.sum(rho + (1.0 - rho) / m))
 
 
 def clustered_interval(successes: Sequence[int], rollouts: Sequence[int]) -> tuple[float, float]:
-    """95 % interval of a per-trial rate from per-seed counts (``successes[i]`` of ``rollouts[i]``).
+    """95 % interval of a per-trial rate from per-seed counts (``successes[i]`` of ``rollouts[i]``):
+    the interval for the rate the tables print, the mean over seeds of the per-seed fractions p̄.
 
-    The rollouts of one seed share a policy, so successes are modelled as beta-binomial: each seed
-    has its own success probability, drawn from a Beta with mean μ and intra-seed correlation ρ
-    (ρ → 0: every rollout independent; ρ → 1: each seed all-or-nothing). The interval is the
-    profile-likelihood one for μ, {μ : 2(ℓ(μ̂, ρ̂) − max_ρ ℓ(μ, ρ)) ≤ χ²₁(0.95)}: ρ is estimated from
-    how much the seeds differ, so seeds that disagree widen it. It needs no variance estimate from
-    the seeds (which fails where every seed is at 0 or 1): there the likelihood itself bounds μ (all
-    of n seeds at 0 gives μ ≤ 1 − exp(−χ²/(2n)), as if each seed were one trial). Its coverage on
-    simulated clustered data is measured in tests/test_readings.py and docs/results.md."""
-    from scipy.optimize import brentq, minimize_scalar
-    from scipy.special import expit
+    The rollouts of one seed share a policy, so they are not independent. The interval is
+    {μ : 2 n_eff(μ) · KL(p̄ ‖ μ) ≤ χ²₁(0.95)}, the likelihood-ratio interval of a binomial proportion
+    p̄ observed on n_eff(μ) independent rollouts (:func:`effective_rollouts`), the connected part
+    around p̄. n_eff(μ) follows from the intra-seed correlation ρ̂(μ), profiled at each μ from a
+    beta-binomial model (each seed's success probability drawn from a Beta with mean μ and intra-seed
+    correlation ρ), so seeds that disagree widen it. Where every seed is at 0 (or 1) the profile
+    puts ρ̂ at 1 and n_eff at n: all of n seeds at 0 gives μ ≤ 1 − exp(−χ²/(2n)), as if each seed were
+    one trial. Its coverage on simulated clustered data is measured in tests/test_readings.py and
+    docs/results.md.
+
+    Why not the beta-binomial's own profile-likelihood interval for μ (this function's earlier
+    form): that interval is for the beta-binomial's maximum-likelihood μ̂, which is not p̄; where the
+    seeds do not look like draws from one Beta it can lie far from p̄ and exclude it (18 seeds at
+    1/30 and 2 at 30/30: p̄ = 0.13, that interval [0.14, 0.41]). p̄ is the thesis' counting
+    ("averaged") and is unbiased for the seeds' mean success probability whatever their
+    distribution, and its variance needs only ρ; so the Beta serves here only to estimate ρ, and the
+    interval always contains the printed rate."""
+    from scipy.optimize import brentq
 
     x = np.asarray(successes, dtype=float)
     m = np.asarray(rollouts, dtype=float)
@@ -182,21 +219,27 @@ def clustered_interval(successes: Sequence[int], rollouts: Sequence[int]) -> tup
         return (0.0, 1.0)
     if x.shape != m.shape or np.any(m <= 0) or np.any(x < 0) or np.any(x > m):
         raise ValueError(f"clustered_interval: need 0 <= successes <= rollouts per seed, got {x.tolist()} of {m.tolist()}")
+    p_bar = float(np.mean(x / m))
     eps = 1e-9
-    fit = minimize_scalar(lambda u: -_profile(float(expit(u)), x, m), bounds=(-21.0, 21.0), method="bounded",
-                          options={"xatol": 1e-7})
-    mu_hat, top = float(expit(fit.x)), -float(fit.fun)
-    for edge in (eps, 1.0 - eps):  # the maximum may sit on the boundary (every seed at 0 or at 1)
-        value = _profile(edge, x, m)
-        if value > top:
-            mu_hat, top = edge, value
 
     def excess(mu):
-        return 2.0 * (top - _profile(mu, x, m)) - CHI2_95
+        rho = _profile(mu, x, m)[1]
+        return 2.0 * effective_rollouts(rho, m) * _bernoulli_kl(p_bar, mu) - CHI2_95
 
-    lo = 0.0 if mu_hat <= eps or excess(eps) <= 0 else brentq(excess, eps, mu_hat, xtol=1e-7)
-    hi = 1.0 if mu_hat >= 1 - eps or excess(1 - eps) <= 0 else brentq(excess, mu_hat, 1 - eps, xtol=1e-7)
-    return (float(lo), float(hi))
+    def end(edge):
+        """The first μ from p̄ towards ``edge`` where the statistic reaches the cut: a grid outwards,
+        then Brent's method in the first step that crosses (n_eff varies with μ, so the statistic
+        need not be monotone; the interval is the part connected to p̄)."""
+        if abs(edge - p_bar) <= eps:
+            return round(edge)
+        prev = p_bar
+        for mu in np.linspace(p_bar, edge, 41)[1:]:
+            if excess(mu) > 0:
+                return brentq(excess, prev, mu, xtol=1e-7)
+            prev = mu
+        return round(edge)
+
+    return (float(end(eps)), float(end(1.0 - eps)))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -2,8 +2,10 @@
 
 Each table is a list of cells; a cell is a set of configuration values (task, cost, k, method)
 and the thesis' success rate. ``table_configs(table, seeds, preset)`` expands a table into the
-configurations of a sweep; ``render_table(table, summaries)`` prints our success rate with its
-95 % Wilson interval and the number of seeds next to the thesis value, as markdown. A task that
+configurations of a sweep; ``render_table(table, results)`` prints, as markdown, each cell's headline
+rate with its 95 % interval over seeds and the number of seeds next to the thesis value, then every
+reading of every cell (:mod:`pipps.reporting.readings`) and the difference of two methods under
+every reading. A task that
 no thesis table has gets its own (:func:`task_table`: methods against k, no thesis values).
 Whether an experiment succeeded is its task's verdict (:mod:`pipps.reporting.verdicts`).
 """
@@ -480,22 +482,43 @@ def _present_readings(results: list[CellResult]) -> list[readings.Reading]:
     return [rd for rd in readings.READINGS if rd.name in have]
 
 
+def _reading_cells(r: CellResult, shown: list[readings.Reading]) -> list[str]:
+    """A cell's rate under each of ``shown`` with its interval over seeds ("–" where it does not apply)."""
+    got = r.by_reading
+    return [got[rd.name].text() if rd.name in got else "–" for rd in shown]
+
+
+def _reading_head(shown: list[readings.Reading]) -> list[str]:
+    return [("**" + rd.label + "**") if rd.name == readings.HEADLINE else rd.label for rd in shown]
+
+
+_READINGS_TITLE = "every reading [95 % interval over seeds] (docs/results.md, \"How a success rate is counted\")"
+
+
 def render_readings(table: Table, results: list[CellResult]) -> str:
     """Markdown: one row per cell with results, its rate under every reading with the 95 % interval
     over seeds (per-seed readings also as a count), the thesis' value beside."""
     shown = _present_readings(results)
-    head = ["", "method", "seeds", "thesis", *(("**" + rd.label + "**") if rd.name == readings.HEADLINE else rd.label
-                                                for rd in shown)]
-    lines = [f"**{table.title}**, every reading [95 % interval over seeds] (docs/results.md, \"How a success rate is "
-             "counted\")", "", "| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    head = ["", "method", "seeds", "thesis", *_reading_head(shown)]
+    lines = [f"**{table.title}**, {_READINGS_TITLE}", "", "| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for r in results:
         if not r.n:
             continue
-        thesis = "–" if r.cell.thesis is None else f"{r.cell.thesis:.2f}"
-        got = r.by_reading
-        lines.append(f"| {r.cell.row} | {METHODS[r.cell.method].label} | {r.n} | {thesis} | "
-                     + " | ".join(got[rd.name].text() if rd.name in got else "–" for rd in shown) + " |")
+        lines.append(f"| {r.cell.row} | {METHODS[r.cell.method].label} | {r.n} | {_thesis(r.cell)} | "
+                     + " | ".join(_reading_cells(r, shown)) + " |")
     return "\n".join(lines)
+
+
+def _thesis(cell: Cell) -> str:
+    return "–" if cell.thesis is None else f"{cell.thesis:.2f}"
+
+
+def _difference_cells(a: CellResult, b: CellResult, shown: list[readings.Reading]) -> list[str]:
+    """``a − b`` under each of ``shown`` (:func:`pipps.reporting.readings.compare`; "–" where a reading
+    applies to only one of them)."""
+    ga, gb = a.by_reading, b.by_reading
+    return [readings.compare(ga[rd.name], gb[rd.name]).text() if rd.name in ga and rd.name in gb else "–"
+            for rd in shown]
 
 
 def render_differences(table: Table, results: list[CellResult], compare: tuple[str, str] = ("tp", "pilco")) -> str:
@@ -510,16 +533,56 @@ def render_differences(table: Table, results: list[CellResult], compare: tuple[s
         ra, rb = by.get((row, a)), by.get((row, b))
         if not (ra and rb and ra.n and rb.n):
             continue
-        ga, gb = ra.by_reading, rb.by_reading
-        cells = [readings.compare(ga[rd.name], gb[rd.name]).text() if rd.name in ga and rd.name in gb else "–"
-                 for rd in shown]
         thesis = "–" if ra.cell.thesis is None or rb.cell.thesis is None else f"{ra.cell.thesis - rb.cell.thesis:+.2f}"
-        lines.append(f"| {row} | {thesis} | " + " | ".join(cells) + " |")
+        lines.append(f"| {row} | {thesis} | " + " | ".join(_difference_cells(ra, rb, shown)) + " |")
     if not lines:
         return ""
     la, lb = METHODS[a].label, METHODS[b].label
     return "\n".join([f"**{table.title}**, {la} − {lb} under every reading [95 % interval], permutation p over seeds",
                       "", "| | thesis | " + " | ".join(rd.label for rd in shown) + " |",
+                      "|---" * (len(shown) + 2) + "|", *lines])
+
+
+def render_group_readings(table: Table, setting: str, groups: list[tuple[Any, list[CellResult]]]) -> str:
+    """Markdown: :func:`render_readings` for a comparison by ``setting`` (``groups`` as in
+    :func:`render_comparison`): one row per cell and value with results, in table order, each
+    value's rate under every reading with its 95 % interval over seeds. "" without results."""
+    shown = _present_readings([r for _, results in groups for r in results])
+    by = [(value, {(r.cell.row, r.cell.method): r for r in results}) for value, results in groups]
+    rows = []
+    for cell in table.cells:
+        for value, got in by:
+            r = got.get((cell.row, cell.method))
+            if r is not None and r.n:
+                rows.append(f"| {cell.row} | {METHODS[cell.method].label} | {value} | {r.n} | {_thesis(cell)} | "
+                            + " | ".join(_reading_cells(r, shown)) + " |")
+    if not rows:
+        return ""
+    head = ["", "method", setting, "seeds", "thesis", *_reading_head(shown)]
+    return "\n".join([f"**{table.title}**, by {setting}, {_READINGS_TITLE}", "", "| " + " | ".join(head) + " |",
+                      "|---" * len(head) + "|", *rows])
+
+
+def render_group_differences(table: Table, setting: str, groups: list[tuple[Any, list[CellResult]]]) -> str:
+    """Markdown: with exactly two values of ``setting``, per cell that both have results, the first
+    minus the second under every reading, as :func:`render_differences` does for two methods:
+    Newcombe's interval from the two seed-level intervals and the permutation p over seeds (the two
+    values' seeds taken as independent; :func:`render_paired` pairs them). "" otherwise."""
+    if len(groups) != 2:
+        return ""
+    (a, ra_all), (b, rb_all) = groups
+    shown = _present_readings(ra_all + rb_all)
+    rb_by = {(r.cell.row, r.cell.method): r for r in rb_all}
+    lines = []
+    for ra in ra_all:
+        rb = rb_by.get((ra.cell.row, ra.cell.method))
+        if ra.n and rb is not None and rb.n:
+            lines.append(f"| {ra.cell.row} | {METHODS[ra.cell.method].label} | "
+                         + " | ".join(_difference_cells(ra, rb, shown)) + " |")
+    if not lines:
+        return ""
+    return "\n".join([f"**{table.title}**, {setting} = {a} − {b} under every reading [95 % interval], permutation p "
+                      "over seeds", "", "| | method | " + " | ".join(rd.label for rd in shown) + " |",
                       "|---" * (len(shown) + 2) + "|", *lines])
 
 
