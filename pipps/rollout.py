@@ -67,13 +67,13 @@ def rollout(
     task with a fall condition, a non-finite next state counts as a fall as well.
     """
     require_float64("pipps.rollout.rollout")
-    if policy is not None:
-        check_policy(policy, task.problem.policy_input_dim, task.problem.action_dim)
     if task.host_stepped:
         if isinstance(key, jax.core.Tracer):
             raise TypeError(f"{task.simulator.name}: a host-stepped true system cannot be traced (jit, vmap); "
                             "call rollout() or host_rollout() outside them")
-        return host_rollout(key, task, policy, horizon=horizon)
+        return host_rollout(key, task, policy, horizon=horizon)  # it checks the policy itself
+    if policy is not None:
+        check_policy(policy, task.problem.policy_input_dim, task.problem.action_dim)
     sim, problem = task.simulator, task.problem
     H = problem.horizon if horizon is None else int(horizon)
     k0, k_obs, k_act = jax.random.split(key, 3)
