@@ -76,8 +76,9 @@ def default_specs() -> list[str]:
     return [n for n in _estimators.ESTIMATORS if n in BEFORE_PIECES_OWNED_STATE] + [THESIS_TP]
 
 
-def parse_spec(spec: str) -> tuple[str, dict]:
-    """``"tp:k_lr=batch"`` → ("tp", {"k_lr": "batch"}); a value that reads as a number is one."""
+def _parse_spec_before(spec: str) -> tuple[str, dict]:
+    """The library's ``parse_spec`` for a tree older than it (the run before the pieces owned their
+    state): ``"tp:k_lr=batch"`` → ("tp", {"k_lr": "batch"}); a value that reads as a number is one."""
     name, *items = spec.strip().split(":")
     settings = {}
     for item in items:
@@ -89,6 +90,9 @@ def parse_spec(spec: str) -> tuple[str, dict]:
         except ValueError:
             settings[key.strip()] = value.strip()
     return name, settings
+
+
+parse_spec = getattr(_estimators, "parse_spec", _parse_spec_before)
 
 
 def file_name(spec: str) -> str:
