@@ -11,10 +11,11 @@
 # and takes the next. Resumable: complete files are skipped, an unfinished file continues after
 # its last finished trial (copy results/in-progress/* into OUT first).
 #
-# Order: what only a CPU runs comes first (PILCO and the fixed-seed quasi-Newton methods cannot be
-# batched), breadth first (seeds 0-4 of a group's cells before seeds 5-9); the batchable cells
-# follow for a machine without a GPU. On a lent GPU, run those with experiments/gpu_concurrent_cells.sh:
-# what it ran, with which command, is in results/README.md.
+# Order: the issue's groups in turn, breadth first (seeds 0-4 of a group's cells before seeds 5-9).
+# The first entries, written when a GPU was expected for the batchable cells, ran the CPU-only ones
+# (PILCO, the fixed-seed quasi-Newton methods) first; they are complete. On a lent GPU, run the
+# batchable cells with experiments/gpu_concurrent_cells.sh (its runs are in results/README.md): this
+# queue skips every file that is complete there.
 set -uo pipefail
 out=${1:-results/thesis}
 workers=${2:-2}
@@ -32,18 +33,22 @@ queue=(
   # Table 4.1 cells in the sibling folder pilco-noise/
   "--table 4.2 --k 1 --methods pilco --seeds 5 --set pilco_policy_noise=true --out {parent}/pilco-noise"
   "--table 4.3 --k 1 --methods gtp --seeds 5"
-  "--table 4.1 --k 1 --methods rp_fs,gr_fs --seeds 10"
-  "--table 4.2 --k 1 --methods pilco --seeds 10"
-  # group 4: unicycle
-  "--table 4.4 --methods pilco --seeds 5"
-  # the other batchable cells, for a machine without a GPU, in the same order
+  # The rest in the issue's group order, breadth first: seeds 0-4 of every cell of a group before
+  # seeds 5-9 of any (few tasks are lent a GPU, so the batchable cells are not left to wait for one).
+  # group 1: TP-sigma_f, the one cell of Table 4.1's k = 1 row without 5 seeds, then seeds 5-9
   "--table 4.1 --k 1 --methods tp-sf --seeds 5"
+  "--table 4.1 --k 1 --methods rp_fs,gr_fs --seeds 10"
+  "--table 4.1 --k 1 --methods tp-sf --seeds 10"
+  # groups 2-3: Tip Cost GR, then GLR on both costs (Table 4.3's sweep runs Tip and Angle), then 5-9
   "--table 4.2 --k 1 --methods gr --seeds 5"
   "--table 4.3 --k 1 --methods glr --seeds 5"
-  "--table 4.1 --k 1 --methods tp-sf --seeds 10"
+  "--table 4.2 --k 1 --methods pilco --seeds 10"
   "--table 4.2 --k 1 --methods tp,gr --seeds 10"
   "--table 4.3 --k 1 --methods gtp,glr --seeds 10"
+  # group 4: unicycle, 5 seeds per cell
+  "--table 4.4 --methods pilco --seeds 5"
   "--table 4.4 --methods rp,lr,tp --seeds 5"
+  # group 5: DEL on cart-pole balancing
   "--table del --seeds 5"
 )
 worker() {
