@@ -7,7 +7,9 @@ gradient error) and ``rollout`` (true-system rollouts with a random policy).
 ``pipps COMMAND --help`` lists the options.
 
 Errors are one line naming the problem (exit status 2 for bad input); ``--debug`` or
-``PIPPS_DEBUG=1`` shows the traceback of an unexpected one.
+``PIPPS_DEBUG=1`` shows the traceback of an unexpected one. Ctrl-C (SIGINT) and ``kill PID``
+(SIGTERM, :class:`Terminated`) both stop a command keeping every finished trial (exit status 130
+and 143); a process started in the background by a script ignores SIGINT, so ``kill`` stops it.
 
 Every command computes in float64: :func:`main` switches on JAX's 64-bit mode before anything
 else runs (:func:`pipps.enable_float64`; importing the library does not).
@@ -27,7 +29,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import signal
 import sys
+import threading
 
 from pipps import cli_options as opt
 
@@ -488,11 +492,11 @@ def _cmd_run(args) -> int:
             progress = RunProgress(est, cfg.num_random)
         try:
             result = run_experiment(cfg, progress=progress, on_trial=lambda r: write_result(out, r), resume=resume)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as err:
             kept = existing_result(out, cfg)
             print(f"\npipps run: interrupted; {out}: {kept.describe(cfg.num_trials)}"
                   + (f"; pipps run --resume --out {out} continues it" if kept.trials else ""), file=sys.stderr)
-            return 130
+            return _interrupted_status(err)
     returns = " ".join(f"{t.eval_return:.2f}" for t in result.trials)
     print(f"evaluated return per trial (trial 0 first): {returns}")
     verdict = "success" if result.success else "failure"
@@ -583,11 +587,11 @@ def _cmd_sweep(args) -> int:
     try:
         report = run_sweep(configs, args.out, jobs=args.jobs, on_done=on_done, backend=args.backend,
                            address=args.address, batched=args.batched, batching=args.batching, on_trial=progress)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
         print("\npipps sweep: interrupted; the workers are stopped", file=sys.stderr)
         for line in kept_report([(cfg, path) for cfg, path, _ in todo], _command_line()):
             print(line, file=sys.stderr)
-        return 130
+        return _interrupted_status(err)
     for path, note in report.notes.items():
         print(f"  note: {path}: {note}", file=sys.stderr)
     print(f"ran {len(report.ran)}, skipped {len(report.skipped)} (complete, or running in another process), "
@@ -1093,6 +1097,39 @@ def enable_compilation_cache() -> str | None:
     return folder
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill PID``) taken as Ctrl-C: a run writes its file as interrupted, a sweep stops its
+    workers the same way, and the process exits 143 (128 + SIGTERM) instead of 130. A
+    ``KeyboardInterrupt`` so that every path that keeps finished trials on Ctrl-C keeps them here too.
+    It matters for runs started in the background by a script (``nohup pipps sweep … &``): such a
+    process inherits SIGINT ignored, as every program started so does, and ``kill`` is how it is stopped."""
+
+
+def _on_sigterm(signum, frame):
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
+    raise Terminated(f"stopped by signal {signum} (SIGTERM)")
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """Take SIGTERM as :class:`Terminated` while the command runs, where SIGTERM has its default
+    action (a handler the embedding program set, or an inherited ``ignore``, is left alone) and this is
+    the main thread (the only one Python may set a handler in)."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) != signal.SIG_DFL:
+        yield
+        return
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _interrupted_status(err: BaseException) -> int:
+    """The exit status of a command stopped by ``err``: 143 after SIGTERM, 130 after Ctrl-C."""
+    return 128 + signal.SIGTERM if isinstance(err, Terminated) else 130
+
+
 def main(argv: list[str] | None = None) -> int:
     import os
 
@@ -1107,11 +1144,12 @@ def main(argv: list[str] | None = None) -> int:
         sys.path.append(os.getcwd())
     name = f"pipps {args.command}" + (f" {args.study}" if args.command == "study" else "")
     try:
-        return _dispatch(args)
-    except KeyboardInterrupt:
+        with _sigterm_as_interrupt():
+            return _dispatch(args)
+    except KeyboardInterrupt as err:
         print(f"{name}: interrupted; result files keep every finished trial (resume with --resume or the same sweep)",
               file=sys.stderr)
-        return 130
+        return _interrupted_status(err)
     except Exception as err:
         from pipps.experiments.config import ConfigError
         from pipps.experiments.results import ResultError

@@ -413,15 +413,23 @@ def _children(pid: int) -> set[int]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="reads worker pids from /proc")
-def test_sigint_to_a_sweep_stops_its_workers_within_seconds_and_says_what_was_kept(tmp_path):
-    """SIGINT to the sweep's process alone (as ``kill -INT``; a terminal's Ctrl-C also signals the
-    workers): the workers stop and write their files as interrupted, the sweep names each file's
-    finished trials and the command that resumes, and nothing is left running or locked."""
+def _sigint_as_at_a_terminal():
+    """In the child before it runs: SIGINT's default action, whatever this test process inherited (a
+    test run started in the background by a script ignores SIGINT, and its children inherit that)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+@pytest.mark.parametrize("sig, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_to_a_sweep_stops_its_workers_within_seconds_and_says_what_was_kept(tmp_path, sig, status):
+    """SIGINT (as ``kill -INT``; a terminal's Ctrl-C also signals the workers) or SIGTERM (``kill``)
+    to the sweep's process alone: the workers stop and write their files as interrupted, the sweep
+    names each file's finished trials and the command that resumes, and nothing is left running or
+    locked."""
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     args = [sys.executable, "-m", "pipps.cli", "sweep", "--table", "4.1", "--k", "1", "--methods", "tp", "--seeds", "2",
             "--jobs", "2", "--preset", "quick", "--set", "num_learned=6", "--set", "policy_evals=60",
             "--set", "num_particles=8", "--set", "eval_rollouts=2", "--out", str(tmp_path)]
-    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_sigint_as_at_a_terminal)
     seen, workers, t0 = [], set(), time.monotonic()
     try:
         while time.monotonic() - t0 < 600:
@@ -433,7 +441,7 @@ def test_sigint_to_a_sweep_stops_its_workers_within_seconds_and_says_what_was_ke
         assert "trial 1 of 0-6 done" in seen[-1], "".join(seen)
         workers = {w for w in workers | _children(proc.pid) if "spawn" in Path(f"/proc/{w}/cmdline").read_text()}
         sent = time.monotonic()
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         rest = proc.stderr.read()
         proc.wait(60)
         took = time.monotonic() - sent
@@ -442,7 +450,7 @@ def test_sigint_to_a_sweep_stops_its_workers_within_seconds_and_says_what_was_ke
             proc.kill()
     text = "".join(seen)
     assert "ETA" in text and "[cpu " in text  # progress after every trial, with the sweep's ETA
-    assert proc.returncode == 130 and took < 15, (took, rest)
+    assert proc.returncode == status and took < 15, (took, rest)
     assert "interrupted; the workers are stopped" in rest and "resume with the same command: pipps sweep" in rest
     assert rest.count("(interrupted, resumable)") + rest.count("(stopped while running") == 2, rest
     for path in tmp_path.glob("*.h5"):
@@ -450,6 +458,27 @@ def test_sigint_to_a_sweep_stops_its_workers_within_seconds_and_says_what_was_ke
         assert n >= 1 and status in ("interrupted", "running") and f"{path}" in rest
     assert len(workers) == 2 and not any(Path(f"/proc/{w}").exists() for w in workers)
     assert not list(tmp_path.glob(".*.lock")) and not list(tmp_path.glob(".*.tmp-*"))
+
+
+def test_sigterm_is_taken_as_an_interrupt_only_where_it_has_its_default_action():
+    from pipps.cli import Terminated, _interrupted_status, _sigterm_as_interrupt
+
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+    with pytest.raises(Terminated) as caught, _sigterm_as_interrupt():
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises at the next bytecode; never reached
+    assert isinstance(caught.value, KeyboardInterrupt) and _interrupted_status(caught.value) == 143
+    assert _interrupted_status(KeyboardInterrupt()) == 130
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # restored
+    seen = []
+    signal.signal(signal.SIGTERM, lambda *a: seen.append(a[0]))  # an embedding program's own handler
+    try:
+        with _sigterm_as_interrupt():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.1)
+        assert seen == [signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 # -- 6. cost before it is spent ---------------------------------------------------------------------------------
