@@ -246,8 +246,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "as not the thesis protocol")
     tb.add_argument("--custom", action="store_true",
                     help="also count results whose settings depart from the preset (each table names them)")
-    tb.add_argument("--curves", action="store_true", help="also print every result's evaluated return per trial, and "
-                    "per cell its median and quartiles over the seeds")
+    tb.add_argument("--curves", action="store_true", help="also print every result's evaluated return per trial (with "
+                    "--table, that table's results), and per cell its median and quartiles over the seeds")
     tb.add_argument("--per-seed", action="store_true",
                     help="also print, per cell, every seed's final return and fraction of rollouts balanced (upright)")
     tb.add_argument("--compare", default="tp,pilco", type=_method_pair, metavar="A,B",
@@ -650,7 +650,8 @@ def _result_paths(items):
 
 def _cmd_table(args) -> int:
     from pipps.experiments.results import ResultError, read_summary
-    from pipps.reporting.tables import TABLES, comparable_settings, counts, get_table, judge_counted, render_curves
+    from pipps.reporting.tables import TABLES, cell_summaries, comparable_settings, counts, get_table, judge_counted
+    from pipps.reporting.tables import render_curves
     from pipps.reporting.tables import result_tables
 
     paths = _result_paths(args.results)
@@ -680,9 +681,14 @@ def _cmd_table(args) -> int:
     resimulated = [s for s in counted if s.get("resimulated")]
     printed = (_print_tables if args.by is None else _print_comparison)(args, tables, counted)
     if args.curves and summaries:
-        print("Evaluated return per trial (trial 0 is the random trial):\n")
-        print(render_curves(counted))
-        print()
+        shown = counted
+        if args.table:  # the results of the table asked for, not every result found
+            paths_in = {r["path"] for t in tables for c in t.cells for r in cell_summaries(t, c, counted, args.preset, True)}
+            shown = [s for s in counted if s["path"] in paths_in]
+        if shown:
+            print("Evaluated return per trial (trial 0 is the random trial):\n")
+            print(render_curves(shown))
+            print()
     if note:
         print(note, file=sys.stderr)
     print(f"{len(counted)} complete results of the {args.preset} preset"

@@ -738,6 +738,8 @@ def test_cli_table_reads_results_and_skips_corrupt(tiny_result, tmp_path, capsys
     row = next(line for line in out.splitlines() if line.startswith("| k = 1 |"))
     assert "(1) / 0.99" in row
     assert "1 complete results of the thesis preset counted; 0 complete results of other settings and 1 incomplete or corrupt" in out
+    assert main(["table", str(folder), "--table", "4.4", "--curves", "--custom"]) == 0
+    assert "cartpole_swingup TP k=1 seed 0" not in capsys.readouterr().out  # --table 4.4's curves: the unicycle's only
 
 
 def test_cli_table_by_a_setting_prints_each_value_and_names_a_bad_setting(tiny_result, tmp_path, capsys):
