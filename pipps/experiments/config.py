@@ -47,6 +47,7 @@ and a built-in task's configuration, which has none, is stored without it.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -196,7 +197,10 @@ def _normalise_task(c: ExperimentConfig) -> None:
         object.__setattr__(c, "task_source", task_source(task))
 
 
+@functools.cache
 def _field_types() -> dict[str, Any]:
+    """ExperimentConfig's field types, resolved once: resolving its string annotations compiles each
+    of them, and every validation and comparison of a configuration asks (most of `pipps table`'s time)."""
     return typing.get_type_hints(ExperimentConfig)
 
 
