@@ -16,6 +16,15 @@ directions (the Tip Cost's multi-modality, docs/results.md claim 3) shows as qua
 
     python experiments/trial_traces.py --particles results/thesis/cartpole_swingup_tip_k1_tp_thesis_s2.h5
 
+``--shaped`` prints, per learned trial, the stored particles' objective Σ_t mean_i c(x_t,i) beside
+the Gaussian-shaped one Σ_t E_N(μ_t,Σ_t)[c] that GTP and GLR follow (μ_t, Σ_t fitted to the stored
+particles, 1/P as the estimator fits them), by the moment-matched formula the estimator uses and by
+Monte Carlo under the same Gaussian (4000 draws per step, seed 0), and the true return: a minimum that
+exploits the Gaussian's tail (thesis §4.6.1, on GTP's and PILCO's Tip Cost outliers) shows as a
+shaped objective below the particles'.
+
+    python experiments/trial_traces.py --shaped results/thesis/cartpole_swingup_tip_k1_gtp_thesis_s{0,1,2,3,4}.h5
+
 Unfinished files are read too (no checksum verification). Cart-pole state order [x, v, ω, θ].
 """
 
@@ -60,6 +69,39 @@ def particles(paths, steps=(10, 15, 20, 30)) -> None:
                   + f"  upright at the end {np.mean(upright):.2f} of {theta.shape[1]}")
 
 
+def shaped(paths, draws: int = 4000) -> None:
+    import jax
+    import jax.numpy as jnp
+
+    from pipps.precision import enable_float64
+    from pipps.propagation.cost_terms import particle_fit
+    from pipps.tasks.presets import make_cost
+
+    enable_float64()
+    rng = np.random.default_rng(0)
+    for path in paths:
+        result = read_result(path, verify=False)
+        cfg = result.config
+        cost = make_cost(cfg.task, cfg.cost, cfg.preset)
+        per_particle = jax.jit(jax.vmap(cost))
+        fitted = jax.jit(lambda x: particle_fit(x)[:2])
+        expected = jax.jit(lambda m, S: cost.expected(m, S)[0])
+        print(f"{path} ({cfg.method}, seed {cfg.seed})")
+        for t in result.trials:
+            if t.kind != "learned" or getattr(t.predicted, "particles", None) is None:
+                continue
+            X = jnp.asarray(t.predicted.particles)  # (T+1, P, D); the start state's cost is not summed
+            particles_j = mm_j = mc_j = 0.0
+            for x in X[1:]:
+                mu, cov = fitted(x)
+                particles_j += float(jnp.mean(per_particle(x)))
+                mm_j += float(expected(mu, cov))
+                z = rng.multivariate_normal(np.asarray(mu), np.asarray(cov), size=draws, method="eigh")
+                mc_j += float(jnp.mean(per_particle(jnp.asarray(z))))
+            print(f"  trial {t.index:03d}: particles {particles_j:6.2f}  shaped, moment-matched {mm_j:6.2f}  "
+                  f"shaped, Monte Carlo {mc_j:6.2f}  true return {t.eval_return:6.2f}  ({X.shape[1]} stored particles)")
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -67,6 +109,8 @@ def main(argv=None) -> None:
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--summary", action="store_true", help="one line per file: final return, largest median gradient norm")
     mode.add_argument("--particles", action="store_true", help="per trial, where the stored particles put the pole")
+    mode.add_argument("--shaped", action="store_true",
+                      help="per trial, the stored particles' objective beside the Gaussian-shaped one and the true return")
     args = parser.parse_args(argv)
     missing = [str(p) for p in args.files if not p.is_file()]
     if missing:
@@ -76,6 +120,9 @@ def main(argv=None) -> None:
         return
     if args.particles:
         particles(args.files)
+        return
+    if args.shaped:
+        shaped(args.files)
         return
     for path in args.files:
         print(path)
