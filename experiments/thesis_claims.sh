@@ -48,7 +48,7 @@ queue=(
   # group 4: unicycle, 5 seeds per cell
   "--table 4.4 --methods pilco --seeds 5"
   "--table 4.4 --methods rp,lr,tp --seeds 5"
-  # group 5: DEL on cart-pole balancing
+  # group 5: DEL on cart-pole balancing, TP beside it (their learning curves, thesis Fig. 4.17a)
   "--table del --seeds 5"
 )
 worker() {
