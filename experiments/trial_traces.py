@@ -19,7 +19,7 @@ directions (the Tip Cost's multi-modality, docs/results.md claim 3) shows as qua
 ``--shaped`` prints, per learned trial, the stored particles' objective Σ_t mean_i c(x_t,i) beside
 the Gaussian-shaped one Σ_t E_N(μ_t,Σ_t)[c] that GTP and GLR follow (μ_t, Σ_t fitted to the stored
 particles, 1/P as the estimator fits them), by the moment-matched formula the estimator uses and by
-Monte Carlo under the same Gaussian (4000 draws per step, seed 0), and the true return: a minimum that
+Monte Carlo under the same Gaussian (4000 draws per step, seed 0 for each file), and the true return: a minimum that
 exploits the Gaussian's tail (thesis §4.6.1, on GTP's and PILCO's Tip Cost outliers) shows as a
 shaped objective below the particles'.
 
@@ -78,8 +78,8 @@ def shaped(paths, draws: int = 4000) -> None:
     from pipps.tasks.presets import make_cost
 
     enable_float64()
-    rng = np.random.default_rng(0)
     for path in paths:
+        rng = np.random.default_rng(0)  # per file: its numbers do not depend on the files listed with it
         result = read_result(path, verify=False)
         cfg = result.config
         cost = make_cost(cfg.task, cfg.cost, cfg.preset)
