@@ -463,22 +463,22 @@ def test_a_signal_to_a_sweep_stops_its_workers_within_seconds_and_says_what_was_
 def test_sigterm_is_taken_as_an_interrupt_only_where_it_has_its_default_action():
     from pipps.cli import Terminated, _interrupted_status, _sigterm_as_interrupt
 
-    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
-    with pytest.raises(Terminated) as caught, _sigterm_as_interrupt():
-        os.kill(os.getpid(), signal.SIGTERM)
-        time.sleep(5)  # the handler raises at the next bytecode; never reached
-    assert isinstance(caught.value, KeyboardInterrupt) and _interrupted_status(caught.value) == 143
-    assert _interrupted_status(KeyboardInterrupt()) == 130
-    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # restored
-    seen = []
-    signal.signal(signal.SIGTERM, lambda *a: seen.append(a[0]))  # an embedding program's own handler
+    runner = signal.signal(signal.SIGTERM, signal.SIG_DFL)  # whatever the test runner set, put back after
     try:
+        with pytest.raises(Terminated) as caught, _sigterm_as_interrupt():
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # the handler raises at the next bytecode; never reached
+        assert isinstance(caught.value, KeyboardInterrupt) and _interrupted_status(caught.value) == 143
+        assert _interrupted_status(KeyboardInterrupt()) == 130
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # restored
+        seen = []
+        signal.signal(signal.SIGTERM, lambda *a: seen.append(a[0]))  # an embedding program's own handler
         with _sigterm_as_interrupt():
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(0.1)
         assert seen == [signal.SIGTERM]
     finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        signal.signal(signal.SIGTERM, runner)
 
 
 # -- 6. cost before it is spent ---------------------------------------------------------------------------------
