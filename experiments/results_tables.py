@@ -130,7 +130,7 @@ glance = (every_reading_rows(t41, "Table 4.1, ")
           + every_reading_rows(outs["4.2"], "Table 4.2, Tip Cost, ")
           + every_reading_rows(outs["4.3"], "Table 4.3, ", keep=lambda r: r["method"] in ("GTP", "GLR"))
           + every_reading_rows(outs["4.4"], "Table 4.4, ")
-          + every_reading_rows(outs["del"], "DEL, ")
+          + every_reading_rows(outs["del"], "Cart-pole balancing, ")
           + every_reading_rows(table_output("--table", "4.1", "--by", "pilco_policy_noise",
                                             folders=("results/pilco-noise", "results/thesis")), "Table 4.1, ", TERM)
           + every_reading_rows(table_output("--table", "4.2", "--by", "pilco_policy_noise",

@@ -6,6 +6,10 @@
 #   experiments/thesis_claims.sh [OUT] [WORKERS]     # default results/thesis, 2 workers
 #   CORE=1 experiments/thesis_claims.sh OUT            # one worker pinned to core 1 (join a running queue)
 #
+# To stop it: end the worker shells first, then the sweeps (`kill PID` stops a sweep as Ctrl-C
+# does, its file written as interrupted; a worker shell would otherwise start the next entry):
+#   pkill -f thesis_claims.sh; pkill -TERM -f "pipps sweep"
+#
 # One ordered queue of sweeps, walked by WORKERS processes each pinned to its own core: two sweeps
 # share a folder through the result files' locks, so a worker skips the experiment another runs
 # and takes the next. Resumable: complete files are skipped, an unfinished file continues after

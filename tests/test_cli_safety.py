@@ -412,24 +412,29 @@ def _children(pid: int) -> set[int]:
     return found
 
 
-@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="reads worker pids from /proc")
-def _sigint_as_at_a_terminal():
-    """In the child before it runs: SIGINT's default action, whatever this test process inherited (a
-    test run started in the background by a script ignores SIGINT, and its children inherit that)."""
+def _signals_as_at_a_terminal():
+    """In the child before it runs: SIGINT's and SIGTERM's default actions, whatever this test process
+    inherited (a test run started in the background by a script ignores SIGINT, and its children
+    inherit that; pipps leaves an inherited "ignore" alone, as programs should)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
-@pytest.mark.parametrize("sig, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)], ids=["SIGINT", "SIGTERM"])
-def test_a_signal_to_a_sweep_stops_its_workers_within_seconds_and_says_what_was_kept(tmp_path, sig, status):
-    """SIGINT (as ``kill -INT``; a terminal's Ctrl-C also signals the workers) or SIGTERM (``kill``)
-    to the sweep's process alone: the workers stop and write their files as interrupted, the sweep
-    names each file's finished trials and the command that resumes, and nothing is left running or
-    locked."""
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="reads worker pids from /proc")
+@pytest.mark.parametrize("sig, group, status", [(signal.SIGINT, False, 130), (signal.SIGTERM, True, 143)],
+                         ids=["SIGINT to the sweep", "SIGTERM to its process group"])
+def test_a_signal_to_a_sweep_stops_its_workers_within_seconds_and_says_what_was_kept(tmp_path, sig, group, status):
+    """SIGINT to the sweep's process alone (as ``kill -INT``; a terminal's Ctrl-C also signals the
+    workers), or SIGTERM to its whole process group (as ``timeout`` or a service manager sends it;
+    the sweep's process takes SIGTERM as Ctrl-C, the workers take it as SIGINT): the workers stop and
+    write their files as interrupted, the sweep names each file's finished trials and the command
+    that resumes, and nothing is left running or locked."""
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     args = [sys.executable, "-m", "pipps.cli", "sweep", "--table", "4.1", "--k", "1", "--methods", "tp", "--seeds", "2",
             "--jobs", "2", "--preset", "quick", "--set", "num_learned=6", "--set", "policy_evals=60",
             "--set", "num_particles=8", "--set", "eval_rollouts=2", "--out", str(tmp_path)]
-    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_sigint_as_at_a_terminal)
+    proc = subprocess.Popen(args, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=_signals_as_at_a_terminal,
+                            start_new_session=True)  # its own process group, which a group signal reaches alone
     seen, workers, t0 = [], set(), time.monotonic()
     try:
         while time.monotonic() - t0 < 600:
@@ -441,7 +446,10 @@ def test_a_signal_to_a_sweep_stops_its_workers_within_seconds_and_says_what_was_
         assert "trial 1 of 0-6 done" in seen[-1], "".join(seen)
         workers = {w for w in workers | _children(proc.pid) if "spawn" in Path(f"/proc/{w}/cmdline").read_text()}
         sent = time.monotonic()
-        proc.send_signal(sig)
+        if group:
+            os.killpg(proc.pid, sig)
+        else:
+            proc.send_signal(sig)
         rest = proc.stderr.read()
         proc.wait(60)
         took = time.monotonic() - sent
@@ -470,13 +478,94 @@ def test_sigterm_is_taken_as_an_interrupt_only_where_it_has_its_default_action()
             time.sleep(5)  # the handler raises at the next bytecode; never reached
         assert isinstance(caught.value, KeyboardInterrupt) and _interrupted_status(caught.value) == 143
         assert _interrupted_status(KeyboardInterrupt()) == 130
-        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # restored
+        with _sigterm_as_interrupt():  # a command that ends normally puts the default back
+            assert signal.getsignal(signal.SIGTERM) not in (signal.SIG_DFL, signal.SIG_IGN)
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # inherited "ignore" (nohup-like): kept
+        with _sigterm_as_interrupt():
+            assert signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_IGN
         seen = []
         signal.signal(signal.SIGTERM, lambda *a: seen.append(a[0]))  # an embedding program's own handler
         with _sigterm_as_interrupt():
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(0.1)
         assert seen == [signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGTERM, runner)
+
+
+def test_a_pool_worker_takes_sigterm_as_sigint_once():
+    """A sweep's pool worker, busy with an experiment, turns the first SIGTERM into the interrupt that
+    writes its file as interrupted, and ignores a second one while it writes (a signal to the sweep's
+    process group reaches the workers beside the sweep)."""
+    code = """if True:
+        import os, signal, time
+        from pipps.experiments import sweep
+        sweep._start_worker(1, None, True)
+        sweep._busy = True
+        try:
+            print("ready", flush=True)  # inside the try: the signal may come as soon as it is read
+            while True:
+                time.sleep(0.01)
+        except KeyboardInterrupt:
+            print("interrupted", flush=True)
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.2)
+        print("wrote its file", flush=True)
+    """
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                            env=dict(os.environ, JAX_PLATFORMS="cpu"), preexec_fn=_signals_as_at_a_terminal)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        proc.send_signal(signal.SIGTERM)
+        out = proc.stdout.read()
+        assert proc.wait(60) == 0 and out.split() == ["interrupted", "wrote", "its", "file"], out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    from pipps.experiments.sweep import worker_pool
+
+    pool = worker_pool(1)  # the sweep's pool sets its workers up so (no process starts before a task)
+    assert pool._initargs[-1] is True
+    pool.shutdown()
+
+
+def test_a_ray_session_the_sweep_starts_leaves_the_callers_sigterm_handler_in_place():
+    """``ray.init`` sets a SIGTERM handler that exits at once; the sweep puts back a handler its caller
+    had set (the CLI's, which stops the sweep as Ctrl-C does), and leaves Ray's where there was none."""
+    from pipps.experiments.sweep import _run_on_ray
+
+    class FakeRay:  # what _run_on_ray asks of Ray, with ray.init's handler
+        def __init__(self):
+            self.up = False
+
+        def is_initialized(self):
+            return self.up
+
+        def init(self, address=None):
+            self.up = True
+            signal.signal(signal.SIGTERM, self.exit_at_once)
+
+        def exit_at_once(self, signum, frame):
+            raise SystemExit(signum)
+
+        def shutdown(self):
+            self.up = False
+
+        def remote(self, **options):
+            return lambda fn: fn
+
+    runner = signal.getsignal(signal.SIGTERM)
+    ours = lambda signum, frame: None  # noqa: E731
+    try:
+        signal.signal(signal.SIGTERM, ours)
+        _run_on_ray(FakeRay(), [], 1, None, lambda *a: None)
+        assert signal.getsignal(signal.SIGTERM) is ours
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        ray = FakeRay()
+        _run_on_ray(ray, [], 1, None, lambda *a: None)
+        assert signal.getsignal(signal.SIGTERM) == ray.exit_at_once  # no handler of the caller's: Ray's stays
     finally:
         signal.signal(signal.SIGTERM, runner)
 

@@ -30,7 +30,11 @@ or SIGINT sent to it alone) stops the sweep within seconds: queued experiments a
 worker gets SIGINT, writes its file as ``interrupted`` with every finished trial and starts nothing
 new; a worker still busy after :data:`STOP_GRACE` seconds (inside one long compiled call) is killed,
 its file keeping the trials it had finished (status ``running``), its lock released by the kernel.
-The interrupt is then raised again for the caller to report what was kept.
+The interrupt is then raised again for the caller to report what was kept. A pool worker takes
+SIGTERM as it takes SIGINT, so a SIGTERM to the sweep's whole process group (``timeout``, a
+service manager) also leaves each file ``interrupted``; the CLI turns SIGTERM to the sweep's process
+into the same ``KeyboardInterrupt`` (:class:`pipps.cli.Terminated`), and a Ray session this
+function starts does not take that handler away (``ray.init`` sets its own, which exits at once).
 
 ``backend="ray"`` runs the same plan on a Ray cluster (``address``; without one, ``ray.init()``
 finds a running local cluster or starts a local instance, shut down again at the end): each
@@ -59,6 +63,7 @@ import queue as queues
 import signal
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from pathlib import Path
@@ -109,7 +114,7 @@ def worker_pool(jobs: int, width: int = 1, events=None) -> cf.ProcessPoolExecuto
     """``jobs`` spawn workers, each pinned to ``width`` CPUs no other pinned pipps process holds;
     ``events``: a queue (of the spawn context) the workers put their progress on."""
     return cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
-                                  initializer=_start_worker, initargs=(width, events))
+                                  initializer=_start_worker, initargs=(width, events, True))
 
 
 #: seconds a stopping sweep waits for its workers to write their files before it kills them
@@ -119,14 +124,18 @@ _events = None  # a worker's queue to the sweep's process (set by _start_worker)
 _stopping = False  # a worker that got SIGINT: finish writing, start nothing new
 _busy = False  # a worker is running an experiment (SIGINT interrupts it; an idle one just stops)
 _in_worker = False  # this process is a sweep's pool worker
+_takes_sigterm = False  # SIGTERM stops this worker as SIGINT does (pool workers; Ray's keep Ray's own)
 
 
 def _on_sigint(signum, frame):
-    """A sweep worker's SIGINT: stop the experiment it runs (its file is written as interrupted), once;
-    later ones are ignored so that the file is written whole."""
+    """A sweep worker's SIGINT (or a pool worker's SIGTERM): stop the experiment it runs (its file is
+    written as interrupted), once; later ones of either kind are ignored so that the file is written
+    whole (the sweep kills a worker that is still running after its grace period)."""
     global _stopping
     _stopping = True
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if _takes_sigterm:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if _busy:
         raise KeyboardInterrupt
 
@@ -552,14 +561,18 @@ def _pin_to_free_cpus(width: int = 1) -> set[int] | None:
     return chosen
 
 
-def _start_worker(width: int = 1, events=None) -> None:
+def _start_worker(width: int = 1, events=None, sigterm: bool = False) -> None:
     """A sweep worker's set-up, before JAX runs: pin to ``width`` free CPUs, switch on float64,
-    keep the queue its progress goes to, and take SIGINT as "stop after writing" (:func:`_on_sigint`)."""
+    keep the queue its progress goes to, and take SIGINT as "stop after writing" (:func:`_on_sigint`);
+    ``sigterm``: SIGTERM too (a pool worker, which a signal to the sweep's whole process group, as
+    ``timeout`` or a service manager sends, reaches beside the sweep; a Ray worker leaves SIGTERM to Ray)."""
     from pipps.precision import enable_float64
 
-    global _events, _in_worker
-    _events, _in_worker = events, True
+    global _events, _in_worker, _takes_sigterm
+    _events, _in_worker, _takes_sigterm = events, True, sigterm
     signal.signal(signal.SIGINT, _on_sigint)
+    if sigterm:
+        signal.signal(signal.SIGTERM, _on_sigint)
     _pin_to_free_cpus(width)
     enable_float64()
 
@@ -603,7 +616,10 @@ def _run_on_ray(ray, todo, jobs: int, address: str | None, record) -> None:
     its node only: a failure, named as such."""
     started = not ray.is_initialized()
     if started:
-        ray.init(address=address)
+        own = signal.getsignal(signal.SIGTERM) if threading.current_thread() is threading.main_thread() else None
+        ray.init(address=address)  # sets a SIGTERM handler that exits at once
+        if callable(own):  # the caller's handler (the CLI's stops the sweep as Ctrl-C does) stays
+            signal.signal(signal.SIGTERM, own)
     try:
         task = ray_task(ray)
         queue = [(cfg, str(path), str(path.resolve())) for cfg, path in todo]
