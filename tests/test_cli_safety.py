@@ -921,3 +921,30 @@ def test_results_tables_rewrites_only_the_marked_blocks_and_refuses_a_page_witho
     assert page.read_text() == text.replace("| old |", "| k | method | x |\n|---|---|---|\n| k = 1 | TP | 1 |\n"
                                                       "| k = 1 | PILCO | 2 |")
     assert sorted(p.name for p in (tmp_path / "docs").iterdir()) == ["results.md"]
+
+
+def test_sync_results_copies_complete_files_once_and_keeps_unfinished_ones_in_progress(tmp_path):
+    queue, results = tmp_path / "queue", tmp_path / "results"
+    queue.mkdir()
+
+    def make(name, status):
+        with h5py.File(queue / name, "w") as f:
+            f.attrs["status"] = status
+
+    make("a_s0.h5", "complete")
+    make("a_s1.h5", "running")
+    (queue / "a_s2.h5").write_bytes(b"half-written")  # unreadable now: left for the next run
+    (results / "in-progress").mkdir(parents=True)
+    (results / "in-progress/a_s0.h5").write_bytes(b"an older unfinished copy")
+    script = [sys.executable, str(REPO / "experiments/sync_results.py"), "--results", str(results)]
+    proc = subprocess.run([*script, f"{queue}:thesis"], capture_output=True, text=True, env=_env())
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in (results / "thesis").iterdir()) == ["a_s0.h5"]
+    assert sorted(p.name for p in (results / "in-progress").iterdir()) == ["a_s1.h5"]
+    assert "skipped (being written; next time)" in proc.stdout and "a_s2.h5" in proc.stdout
+    (results / "thesis/a_s0.h5").write_bytes(b"kept as it is")  # a complete copy is never replaced
+    subprocess.run([*script, f"{queue}:thesis"], capture_output=True, text=True, env=_env(), check=True)
+    assert (results / "thesis/a_s0.h5").read_bytes() == b"kept as it is"
+    for bad in ("thesis", f"{queue}:/abs", f"{queue}:../out", f"{tmp_path / 'none'}:thesis"):
+        proc = subprocess.run([*script, bad], capture_output=True, text=True, env=_env())
+        assert proc.returncode == 2 and "error:" in proc.stderr, (bad, proc.stderr)
