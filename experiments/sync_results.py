@@ -4,7 +4,7 @@ folder (once; a file already there is left as it is), each unfinished one into
 now complete removed. Files are read under no lock (h5py, read-only); one being written at that
 moment is skipped with a note and taken on the next run.
 
-    python experiments/sync_results.py /work/runs/thesis:thesis /work/runs/pilco-noise:pilco-noise
+    python experiments/sync_results.py runs/thesis:thesis runs/pilco-noise:pilco-noise
 
 Each argument is ``QUEUE_FOLDER:RESULTS_SUBFOLDER``. After it: ``python
 experiments/results_manifest.py > results/MANIFEST.md``, the rows of results/README.md, and

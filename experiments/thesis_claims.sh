@@ -15,7 +15,7 @@
 # and takes the next. Resumable: complete files are skipped, an unfinished file continues after
 # its last finished trial (copy results/in-progress/* into OUT first).
 #
-# Order: the issue's groups in turn, breadth first (seeds 0-4 of a group's cells before seeds 5-9).
+# Order: the claims in the order of docs/results.md, breadth first (seeds 0-4 of a group's cells before seeds 5-9).
 # The first entries, written when a GPU was expected for the batchable cells, ran the CPU-only ones
 # (PILCO, the fixed-seed quasi-Newton methods) first; they are complete. On a lent GPU, run the
 # batchable cells with experiments/gpu_concurrent_cells.sh (its runs are in results/README.md): this
@@ -37,7 +37,7 @@ queue=(
   # Table 4.1 cells in the sibling folder pilco-noise/
   "--table 4.2 --k 1 --methods pilco --seeds 5 --set pilco_policy_noise=true --out {parent}/pilco-noise"
   "--table 4.3 --k 1 --methods gtp --seeds 5"
-  # The rest in the issue's group order, breadth first: seeds 0-4 of every cell of a group before
+  # The rest group by group, breadth first: seeds 0-4 of every cell of a group before
   # seeds 5-9 of any (few tasks are lent a GPU, so the batchable cells are not left to wait for one).
   # group 1: TP-sigma_f, the one cell of Table 4.1's k = 1 row without 5 seeds, then seeds 5-9
   "--table 4.1 --k 1 --methods tp-sf --seeds 5"

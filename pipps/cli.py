@@ -650,9 +650,8 @@ def _result_paths(items):
 
 def _cmd_table(args) -> int:
     from pipps.experiments.results import ResultError, read_summary
-    from pipps.reporting.tables import TABLES, cell_summaries, comparable_settings, counts, get_table, judge_counted
-    from pipps.reporting.tables import render_curves
-    from pipps.reporting.tables import result_tables
+    from pipps.reporting.tables import (TABLES, cell_summaries, comparable_settings, counts, get_table, judge_counted,
+                                        render_curves, result_tables)
 
     paths = _result_paths(args.results)
     try:
@@ -683,8 +682,9 @@ def _cmd_table(args) -> int:
     if args.curves and summaries:
         shown = counted
         if args.table:  # the results of the table asked for, not every result found
-            paths_in = {r["path"] for t in tables for c in t.cells for r in cell_summaries(t, c, counted, args.preset, True)}
-            shown = [s for s in counted if s["path"] in paths_in]
+            inside = {r["path"] for t in tables for c in t.cells
+                      for r in cell_summaries(t, c, counted, args.preset, True)}
+            shown = [s for s in counted if s["path"] in inside]
         if shown:
             print("Evaluated return per trial (trial 0 is the random trial):\n")
             print(render_curves(shown))
