@@ -5,6 +5,7 @@ unbatched and the batched runs, typed trial records, ``restore``; docs/architect
     PYTHONPATH=/path/to/old/checkout python benchmarks/loop_reference.py run /tmp/before
     PYTHONPATH=. python benchmarks/loop_reference.py run /tmp/after
     python benchmarks/loop_reference.py compare /tmp/before /tmp/after
+    PYTHONPATH=TREE taskset -c 1 python benchmarks/loop_reference.py methods DIR   # per tree, then compare
     PYTHONPATH=. python benchmarks/loop_reference.py time      # seconds of one tiny unbatched run
 
 ``run`` covers every path of the loop: an unbatched TP run whose GP turns FITC (full and sparse
@@ -14,6 +15,13 @@ cart-pole balancing) and the pilco task preset (TP and PILCO). ``compare`` requi
 equal bit for bit (value, dtype, shape, compression), except the seconds of the timings, the wall
 time and the versions, which no two runs share. Both parts use only what every pipps version since
 the batched mode has (``run_experiment``, ``run_batched``, ``write_result``, ``read_result``).
+
+``methods`` runs the methods of the thesis tables (PILCO, RP, GR, GR_FS, LR, TP, TP−σ_f, GTP, GLR,
+DEL; :data:`METHOD_RUNS`) as tiny experiments of the *thesis* preset (thesis estimators, the Angle
+and the Tip Cost, the unicycle, cart-pole balancing; 1–3 minutes each on a shared core, mostly
+compilation). Before a queue of thesis cells moves to newer code, equal files show that the seeds
+it adds pool with those the older code ran. Pin both runs to the same single CPU (``taskset -c``):
+XLA partitions its loops by its thread count, and so its rounding.
 """
 
 from __future__ import annotations
@@ -88,6 +96,37 @@ def run(out: Path) -> None:
                                                pilco_linesearches=4, eval_rollouts=3, gp_max_iters=10))
 
 
+#: The tiny thesis-preset runs of ``methods``: (file name, task, method, overrides). One run per code
+#: path the thesis cells take: each estimator (RP, LR, TP, GTP, GLR, DEL), Gaussian resampling (GR),
+#: the GP variance left out (TP−σ_f), the fixed-seed quasi-Newton search (GR_FS; RP_FS differs from it
+#: only by the resampling), PILCO's moment matching, and each task and cost.
+METHOD_RUNS = (
+    [(f"angle_{m}", "cartpole_swingup", m, {}) for m in ("rp", "gr", "gr_fs", "lr", "tp", "tp-sf", "glr")]
+    + [(f"tip_{m}", "cartpole_swingup", m, {"cost": "tip"}) for m in ("gtp", "pilco")]
+    + [(f"unicycle_{m}", "unicycle", m, {}) for m in ("tp", "pilco")]
+    + [("balance_del", "cartpole_balance", "del", {})])
+
+
+def methods(out: Path) -> None:
+    """Every method of the thesis tables on a tiny thesis-preset experiment (:data:`METHOD_RUNS`)."""
+    from pipps.experiments import resolve_config, run_experiment
+    from pipps.experiments.methods import METHODS
+    from pipps.experiments.results import write_result
+
+    _float64()
+    out.mkdir(parents=True, exist_ok=True)
+    for seed, (name, task, method, extra) in enumerate(METHOD_RUNS):
+        if method == "pilco":
+            size = dict(num_learned=1, pilco_linesearches=3, eval_rollouts=3, gp_max_iters=10)
+        else:
+            size = {k: v for k, v in SMALL.items() if k not in METHODS[method].unused}
+            size["num_learned"] = 2
+        cfg = resolve_config("thesis", task, method=method, seed=seed, **size, **extra)
+        start = time.perf_counter()
+        run_experiment(cfg, on_trial=lambda r, name=name: write_result(out / f"{name}.h5", r))
+        print(f"{name}: {time.perf_counter() - start:.1f} s", flush=True)
+
+
 def _entries(g: h5py.Group, prefix: str = "") -> dict:
     out = {f"{prefix}@{k}": (v,) for k, v in g.attrs.items() if k != "wall_seconds"}
     for k, v in g.items():
@@ -139,7 +178,9 @@ if __name__ == "__main__":
         run(Path(sys.argv[2]))
     elif command == "compare":
         sys.exit(compare(Path(sys.argv[2]), Path(sys.argv[3])))
+    elif command == "methods":
+        methods(Path(sys.argv[2]))
     elif command == "time":
         time_one()
     else:
-        sys.exit(f"unknown command {command!r}: run OUT, compare BEFORE AFTER, or time")
+        sys.exit(f"unknown command {command!r}: run OUT, methods OUT, compare BEFORE AFTER, or time")
