@@ -155,3 +155,32 @@ def test_the_calibration_script_lists_the_policies_the_two_rules_disagree_on(cap
     # bounds nothing can fail (the wrapped angle is within π): the seed passes there, and is named
     assert "| 1 | TP | 1 | 0/1 | 1/1 |" in out
     assert "k = 1, TP, at 3.2 : 1000: the verdict differs from the criterion's on seed(s) 4 (passes)" in out
+
+
+def test_the_calibration_script_re_simulates_final_policies_with_fresh_rollouts(capsys):
+    """``--fresh N``: per file, the stored and the fresh return, fraction below 15 and fraction balanced,
+    with both per-seed verdicts; per cell, the per-trial rates from the stored and the fresh rollouts.
+    The fresh numbers are those of the re-simulator's own fresh rollouts (seed 0)."""
+    import importlib.util
+    import re
+
+    spec = importlib.util.spec_from_file_location("calibrate_cartpole",
+                                                  RESULTS.parents[1] / "experiments/calibrate_cartpole.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    path = RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5"
+    script.main([str(path), "--fresh", "8"])
+    out = capsys.readouterr().out
+    result = read_result(path)
+    final = result.trials[-1]
+    below = float(np.mean(np.asarray(final.eval_returns) < 15))
+    ret, _, flags = Resimulator().trial(result, len(result.trials) - 1, fresh=8)
+    fresh_below, fresh_balanced = float(np.mean(ret < 15)), float(np.mean(flags))
+    se = float(np.std(ret, ddof=1) / np.sqrt(ret.size))
+    holds = "yes" if (np.mean(ret) < 15) == (final.eval_return < 15) else "NO"
+    assert (f"| 1 | TP | 4 | {final.eval_return:.2f}, {below:.2f}, 0.00 | {np.mean(ret):.2f} ± {se:.2f}, "
+            f"{fresh_below:.2f}, {fresh_balanced:.2f} | {holds} | "
+            f"{'yes' if fresh_balanced < 0.5 else 'NO'} |") in out
+    cell = re.search(r"^\| 1 \| TP \| 1 \| ([0-9.]+) \| ([0-9.]+) \| ([0-9.]+) \| ([0-9.]+) \|$", out, re.M)
+    assert cell is not None
+    assert [float(x) for x in cell.groups()] == [round(below, 2), round(fresh_below, 2), 0.0, round(fresh_balanced, 2)]
