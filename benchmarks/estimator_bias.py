@@ -62,6 +62,7 @@ ESTIMATORS = {
     "tp thesis preset": (thesis_estimator("tp"), (30, 100, 300), "TP, eq. 4.3 baseline, batch k (thesis)"),
     "tp k=batch": (estimator("tp", k_lr="batch"), (30, 100), "TP, previous baseline, batch k"),
     "tp previous": (estimator("tp", k_lr="previous"), (30, 100), "TP, previous baseline, previous k (unbiased control)"),
+    "del thesis preset": (thesis_estimator("del"), (30, 100), "DEL (thesis §3.3.1), pathwise fit derivative, returns-to-go"),
 }
 NOISE_STDS = (0.1, 0.3)
 COST = "saturating"

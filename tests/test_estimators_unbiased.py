@@ -12,7 +12,8 @@ draw R independent replicate estimates with fixed keys and compute, per policy c
   every estimator; the rest of the grid (P ∈ {30, 100}, noise ∈ {0.1, 0.3}, saturating cost, plus
   the quadratic cost at P = 30) is marked ``slow``.
 * **Power.** Variants known to be biased fail the same test with the same R: the eq. 4.3 BIW
-  baseline at P = 100, and RP with the policy's state Jacobian dropped.
+  baseline at P = 100, RP with the policy's state Jacobian dropped, and DEL (whose pathwise fit
+  derivative times returns-to-go counts each cost through every earlier fit; docs/estimator-bias.md).
 * **The thesis' bias, pinned.** The bias of ``baseline="thesis"`` and ``k_lr="batch"`` measured by
   ``benchmarks/estimator_bias.py`` (docs/estimator-bias.md) is reproduced here with independent
   keys: each coordinate agrees with the measured bias within the combined standard error.
@@ -67,6 +68,7 @@ BIASED = {
     "lr_thesis": estimator("lr", baseline="thesis"),
     "tp_thesis": thesis_estimator("tp"),  # eq. 4.3 baseline and k_LR from the same batch
     "tp_kbatch": estimator("tp", k_lr="batch"),
+    "del_thesis": thesis_estimator("del"),  # pathwise fit derivative with returns-to-go (docs/estimator-bias.md)
 }
 
 
@@ -172,6 +174,7 @@ POWER = [
     # (estimator, noise, P, replicates, state-blind policy): each must FAIL the unbiasedness test
     pytest.param("lr_thesis", 0.3, 100, R_DEFAULT, False, id="lr-thesis-baseline-P100"),
     pytest.param("rp", 0.3, 30, R_DEFAULT, True, id="rp-state-jacobian-dropped-P30"),
+    pytest.param("del_thesis", 0.3, 30, R_DEFAULT, False, id="del-thesis-preset-P30"),
     pytest.param("tp_thesis", 0.3, 100, R_SLOW, False, id="tp-thesis-preset-P100", marks=pytest.mark.slow),
     pytest.param("lr_thesis", 0.3, 300, R_SLOW, False, id="lr-thesis-baseline-P300", marks=pytest.mark.slow),
 ]
