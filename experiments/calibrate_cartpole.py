@@ -160,5 +160,6 @@ def main(argv=None) -> None:
             a = np.mean(np.array(v), axis=0)
             print(f"| {k:g} | {METHODS[m].label} | {len(v)} | {a[0]:.2f} | {a[1]:.2f} | {a[2]:.2f} | {a[3]:.2f} |")
 
+
 if __name__ == "__main__":
     main()

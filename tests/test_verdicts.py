@@ -140,13 +140,19 @@ def test_resimulation_at_another_noise_level_changes_only_the_noise_scale(tmp_pa
         script.main([str(path), "--out", str(out)])  # an existing file is refused
 
 
-def test_the_calibration_script_lists_the_policies_the_two_rules_disagree_on(capsys):
+def _calibration_script():
+    """experiments/calibrate_cartpole.py as a module (a script, not part of the package)."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("calibrate_cartpole",
                                                   RESULTS.parents[1] / "experiments/calibrate_cartpole.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
+    return script
+
+
+def test_the_calibration_script_lists_the_policies_the_two_rules_disagree_on(capsys):
+    script = _calibration_script()
     script.main([str(RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5"), "--bounds", "0.3:0.5,3.2:1000"])
     out = capsys.readouterr().out
     assert "15 learned policies from 1 files (re-simulated returns differ from the stored ones by at most 0.0e+00)" in out
@@ -161,13 +167,9 @@ def test_the_calibration_script_re_simulates_final_policies_with_fresh_rollouts(
     """``--fresh N``: per file, the stored and the fresh return, fraction below 15 and fraction balanced,
     with both per-seed verdicts; per cell, the per-trial rates from the stored and the fresh rollouts.
     The fresh numbers are those of the re-simulator's own fresh rollouts (seed 0)."""
-    import importlib.util
     import re
 
-    spec = importlib.util.spec_from_file_location("calibrate_cartpole",
-                                                  RESULTS.parents[1] / "experiments/calibrate_cartpole.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = _calibration_script()
     path = RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5"
     script.main([str(path), "--fresh", "8"])
     out = capsys.readouterr().out
