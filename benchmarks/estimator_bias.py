@@ -63,6 +63,7 @@ ESTIMATORS = {
     "tp k=batch": (estimator("tp", k_lr="batch"), (30, 100), "TP, previous baseline, batch k"),
     "tp previous": (estimator("tp", k_lr="previous"), (30, 100), "TP, previous baseline, previous k (unbiased control)"),
     "del thesis preset": (thesis_estimator("del"), (30, 100), "DEL (thesis §3.3.1), pathwise fit derivative, returns-to-go"),
+    "del (default)": (estimator("del"), (30, 100, 300), "DEL, the fit's derivative one step to θ (consistent: bias O(1/P))"),
 }
 NOISE_STDS = (0.1, 0.3)
 COST = "saturating"

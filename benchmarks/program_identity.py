@@ -12,7 +12,9 @@ The estimators are given as the studies' specs, ``NAME`` or ``NAME:SETTING=VALUE
 (``pipps.propagation.estimators.ESTIMATORS``) that the registry before the pieces came to own their
 state had too (``rp lr lr_plain tp tp_plain tpx gtp glr del``, the library's compositions), and the
 thesis TP, ``tp:k_lr=batch`` (file ``tp_k_lr_batch.txt``). ``tp:k_lr=cross_fit`` (the cross-fitted
-schedule) can be asked for.
+schedule) can be asked for. ``del`` names another estimator since 2026-11-27 (the library's DEL takes
+its density fit's derivative one step to θ; the earlier ``del`` is ``thesis_estimator("del")``): across
+that change its program differs by design.
 
 Every estimate starts from the same zero-initialised state in both code versions: a "previous"
 baseline of zeros (no extra rollout) and, for a weight source with memory, no previous k_LR (a cold

@@ -21,7 +21,7 @@ from pipps.propagation.pieces import EstimatorState, MeanReturn
 from pipps.propagation.weights import PreviousBatchWeight
 from pipps.propagation.cost_terms import density_estimation_costs, plain_costs, shaped_costs
 from pipps.propagation.estimate import estimate, init_estimator_state
-from pipps.propagation.parts import biw_lr, pathwise, plain_lr
+from pipps.propagation.parts import biw_lr, density_lr, pathwise, plain_lr
 from pipps.systems.linear_gaussian import reference_system
 
 CFG = RolloutConfig(num_particles=16)
@@ -52,17 +52,18 @@ def one(system, est, key=3):
         (estimator("tp", k_lr="previous"), compose(plain_costs(), biw_lr(), pathwise(), combiner=inverse_variance("previous"))),
         (estimator("gtp"), compose(shaped_costs(), pathwise(), biw_lr(), combiner=inverse_variance())),
         (estimator("glr"), compose(shaped_costs(), biw_lr())),
-        (estimator("del"), compose(density_estimation_costs("previous"), pathwise(), combiner=single())),
+        (estimator("del"), compose(plain_costs(), density_lr("previous"), combiner=single())),
         (thesis_estimator("lr"), compose(plain_costs(), biw_lr("thesis"))),
         (thesis_estimator("tp"), compose(plain_costs(), pathwise(), biw_lr("thesis"), combiner=inverse_variance("batch"))),
         (thesis_estimator("gtp"), compose(shaped_costs(), pathwise(), biw_lr("thesis"), combiner=inverse_variance("batch"))),
         (thesis_estimator("glr"), compose(shaped_costs(), biw_lr("thesis"))),
         (thesis_estimator("rp"), estimator("rp")),
-        (thesis_estimator("del"), estimator("del")),
+        (thesis_estimator("del"), compose(density_estimation_costs("previous"), pathwise())),
         (estimator("tp", weighting="plain", k_lr=0.3), compose(plain_costs(), pathwise(), plain_lr(), combiner=inverse_variance(0.3))),
         (estimator("lr_plain", weighting="biw"), estimator("lr")),
         (estimator("tp", baseline="none", k_lr="batch"), compose(plain_costs(), pathwise(), biw_lr("none"), combiner=inverse_variance("batch"))),
-        (estimator("del", baseline="none"), compose(density_estimation_costs("none"), pathwise())),
+        (estimator("del", baseline="none"), compose(plain_costs(), density_lr("none"))),
+        (thesis_estimator("del", baseline="none"), compose(density_estimation_costs("none"), pathwise())),
         (estimator("tp", combiner="robust", robust_gamma=0.5), compose(plain_costs(), pathwise(), biw_lr(), combiner=robust(0.5))),
         (thesis_estimator("tp", combiner="robust", robust_z=1.0), compose(plain_costs(), pathwise(), biw_lr("thesis"), combiner=robust(z=1.0, k_lr="batch"))),
         (thesis_estimator("tp", k_lr=0.0), compose(plain_costs(), pathwise(), biw_lr("thesis"), combiner=inverse_variance(0.0))),
@@ -103,8 +104,9 @@ def _state_shapes(system, est):
         (estimator("tp", k_lr="previous"), (), ((), MeanReturn((10,))), PreviousBatchWeight((10,), (10,)), True),
         (estimator("tp", k_lr="guarded", baseline="none"), (), ((), ()), PreviousBatchWeight((10,), (10,)), True),
         (estimator("tp", k_lr="cross_fit"), (), ((), MeanReturn((10,))), (), False),
-        (estimator("del"), MeanReturn((10,)), ((),), (), False),
+        (estimator("del"), (), (MeanReturn((10,)),), (), False),
         (estimator("del", baseline="none"), (), ((),), (), False),
+        (thesis_estimator("del"), MeanReturn((10,)), ((),), (), False),
         (estimator("glr"), (), (MeanReturn((10,)),), (), False),
     ],
 )
@@ -153,6 +155,9 @@ def test_the_extra_rollout_is_made_only_for_a_piece_that_asks(system):
         (lambda: compose(plain_costs(), biw_lr(), plain_lr(), combiner=inverse_variance()), "one of each"),
         (lambda: compose(density_estimation_costs(), pathwise(), biw_lr(), combiner=inverse_variance()), "lone pathwise part"),
         (lambda: compose(density_estimation_costs(), biw_lr()), "lone pathwise part"),
+        (lambda: compose(plain_costs(), pathwise(), density_lr(), combiner=inverse_variance()), "compose it alone"),
+        (lambda: estimator("del", weighting="plain"), "has no batch weighting"),
+        (lambda: thesis_estimator("del", baseline="thesis"), "DEL's baseline"),
     ],
 )
 def test_a_meaningless_combination_is_refused_by_name(build, match):

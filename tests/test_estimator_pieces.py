@@ -34,7 +34,7 @@ from pipps.propagation.estimators import (
     spec_label,
     thesis_estimator,
 )
-from pipps.propagation.parts import biw_lr, pathwise, plain_lr
+from pipps.propagation.parts import biw_lr, density_lr, pathwise, plain_lr
 from pipps.propagation.schedules import CrossFitted, cross_fitted, one_sweep
 from pipps.propagation.weights import WEIGHT_SOURCES, FixedWeight
 
@@ -44,7 +44,8 @@ PROPAGATION = PACKAGE / "propagation"
 
 BUILT_IN = {
     pieces.CostTerms: [plain_costs(), shaped_costs(), density_estimation_costs("previous"), density_estimation_costs("none")],
-    pieces.GradientPart: [pathwise(), biw_lr("previous"), biw_lr("thesis"), biw_lr("none"), plain_lr()],
+    pieces.GradientPart: [pathwise(), biw_lr("previous"), biw_lr("thesis"), biw_lr("none"), plain_lr(),
+                          density_lr("previous"), density_lr("none")],
     pieces.Combiner: [single(), inverse_variance(), robust(), action_nodes()],
     pieces.WeighsTwoParts: [inverse_variance(), robust(), action_nodes()],
     pieces.WeightSource: [factory() for factory in WEIGHT_SOURCES.values()] + [FixedWeight(0.3)],
@@ -250,7 +251,7 @@ def test_the_thesis_variants_are_where_the_thesis_chose_otherwise():
     for n, e in ESTIMATORS.items():
         assert estimator(n) == e.estimator and thesis_estimator(n) == (e.thesis or e.estimator)
         assert e.thesis is None or e.thesis != e.estimator
-    assert {n for n, e in ESTIMATORS.items() if e.thesis} == {"lr", "tp", "gtp", "glr"}
+    assert {n for n, e in ESTIMATORS.items() if e.thesis} == {"lr", "tp", "gtp", "glr", "del"}
 
 
 @pytest.mark.parametrize("spec, want", [

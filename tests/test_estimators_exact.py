@@ -14,7 +14,7 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 from pipps.gp import fit, make_data
-from pipps.particles.forward import RolloutConfig, particle_rollout, reparameterized_objective, sample_noise
+from pipps.particles.forward import RolloutConfig, particle_rollout, particle_step, reparameterized_objective, sample_noise
 from pipps.policies import init_rbf_policy
 from pipps.propagation import cost_terms, lr
 from pipps.propagation.estimators import estimator, thesis_estimator
@@ -106,28 +106,44 @@ def test_gtp_with_k_fixed_reduces_to_shaped_rp_and_glr(setup):
     assert float(g0.value) == pytest.approx(float(j_gs(pol)), rel=1e-13)
 
 
-def test_del_gradient_equals_autodiff_of_its_surrogate(setup):
-    """DEL = ∇θ Σ_t (1/P) Σ_i (G_i − b_t) log q_t(x_i) with x_i and G held fixed (DEL, thesis §3.3.1)."""
+def _del_surrogate(setup, cfg, key, one_step):
+    """Σ_t (1/P) Σ_i G_{i,t} log q_t(x_{i,t}) as a function of θ, the samples and G held at their
+    values: ``q_t`` fitted to the particles of a rollout under θ (``one_step=False``: every step
+    under θ, the thesis' DEL) or of one model step under θ from the recorded ``x_{t−1}`` (the
+    library's DEL)."""
     task, post, pol = setup
-    cfg = RolloutConfig(num_particles=P)
-    est = estimator("del", baseline="none")
-    e = run(setup, est, cfg)
-    noise = sample_noise(jax.random.PRNGKey(3), task, cfg)
+    noise = sample_noise(jax.random.PRNGKey(key), task, cfg)
     rec = particle_rollout(task, pol, post, noise, cfg, jacobian=False)
     returns = jnp.cumsum(rec.cost[::-1], axis=0)[::-1]  # (T, P)
 
+    def fitted(p):
+        if not one_step:
+            return particle_rollout(task, p, post, noise, cfg, jacobian=False).x_next
+        return jnp.stack([particle_step(task, p, post, cfg, rec.x[t], rec.eps[t], jacobian=False).x_next
+                          for t in range(rec.x.shape[0])])
+
     def surrogate(p):
-        r = particle_rollout(task, p, post, noise, cfg, jacobian=False)
         total = 0.0
-        for t in range(r.x_next.shape[0]):
-            xt = r.x_next[t]
+        for t, xt in enumerate(fitted(p)):
             mu = xt.mean(0)
             cov = (xt - mu).T @ (xt - mu) / (P - 1) + 1e-12 * jnp.eye(4)
             total = total + jnp.mean(returns[t] * cost_terms.gaussian_logpdf(rec.x_next[t], mu, cov))
         return total
 
-    ref = jax.grad(surrogate)(pol)
-    np.testing.assert_allclose(flat(e.grad), flat(ref), rtol=1e-8, atol=1e-10 * np.abs(flat(ref)).max())
+    return surrogate
+
+
+@pytest.mark.parametrize("choices", ["library", "thesis"])
+def test_del_gradient_equals_autodiff_of_its_surrogate(setup, choices):
+    """DEL = ∇θ Σ_t (1/P) Σ_i (G_i − b_t) log q_t(x_i) with x_i and G held fixed (thesis §3.3.1): the
+    library's through one model step from x_{t−1}, the thesis' through the whole rollout."""
+    cfg = RolloutConfig(num_particles=P)
+    build = estimator if choices == "library" else thesis_estimator
+    e = run(setup, build("del", baseline="none"), cfg)
+    one_step, chain = (flat(jax.grad(_del_surrogate(setup, cfg, 3, s))(setup[2])) for s in (True, False))
+    ref, other = (one_step, chain) if choices == "library" else (chain, one_step)
+    np.testing.assert_allclose(flat(e.grad), ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
+    assert np.linalg.norm(one_step - chain) > 0.1 * np.linalg.norm(ref)  # the two readings differ here
 
 
 def _direct_biw(x, mean, std, G, baseline):

@@ -100,7 +100,7 @@ def test_each_method_uses_the_settings_of_its_pieces():
     assert "noise_boost_tp" in METHODS["tp+sn"].settings and "noise_boost_tp" not in METHODS["tp"].settings
     # estimator_choices matters where the thesis' and the library's estimators differ
     assert {n for n, m in METHODS.items() if "estimator_choices" in m.settings} == {
-        "lr", "tp", "tp-sf", "tp+sn", "gtp", "glr", "gtp+sn"}
+        "lr", "tp", "tp-sf", "tp+sn", "gtp", "glr", "gtp+sn", "del"}
 
 
 def test_a_record_that_means_nothing_is_refused():

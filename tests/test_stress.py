@@ -36,7 +36,7 @@ from pipps.particles.forward import RolloutConfig, particle_rollout, sample_nois
 from pipps.pilco import PolicySearchConfig, objective, optimize_policy
 from pipps.policies import init_rbf_policy
 from pipps.propagation.combine import inverse_variance_k
-from pipps.propagation.estimators import estimator
+from pipps.propagation.estimators import estimator, thesis_estimator
 from pipps.propagation.update import init_policy_opt_state, make_policy_update
 from pipps.rollout import rollout, training_pairs
 from pipps.tasks.presets import make_task
@@ -45,12 +45,13 @@ pytestmark = pytest.mark.stress
 
 P = 32
 TASK = make_task("cartpole_swingup", horizon=8)  # 8-step random rollouts for the data; T is set per case
-ESTIMATORS = ("rp", "lr", "lr_plain", "tp", "tp_loo", "gtp", "glr", "del", "gr")  # "gr": RP with Gaussian resampling
+ESTIMATORS = ("rp", "lr", "lr_plain", "tp", "tp_loo", "gtp", "glr", "del", "del_thesis", "gr")  # "gr": RP with Gaussian resampling
 # The suite's TP and GTP weigh with k_LR "previous" (on a first iteration: this batch's weight), the
 # rule the k_LR assertions below are about; "tp_loo" is the library's TP now
 # (leave-one-out weights, one per particle), checked for containment and reporting.
 _BUILT = {"gr": lambda: estimator("rp"), "tp": lambda: estimator("tp", k_lr="previous"),
-          "gtp": lambda: estimator("gtp", k_lr="previous"), "tp_loo": lambda: estimator("tp")}
+          "gtp": lambda: estimator("gtp", k_lr="previous"), "tp_loo": lambda: estimator("tp"),
+          "del_thesis": lambda: thesis_estimator("del")}
 
 
 def built(name: str):
@@ -258,13 +259,14 @@ def test_horizon_rp_variance_growth_is_reported(T):
 
 @pytest.mark.parametrize("name", [n if n == "tp" else pytest.param(n, marks=pytest.mark.slow) for n in ESTIMATORS if n != "rp"])
 def test_every_estimator_at_horizon_100(name):
-    """The same deep chaos for LR, plain LR, TP, GTP, GLR, DEL and GR: contained and reported.
+    """The same deep chaos for LR, plain LR, TP, GTP, GLR, both DELs and GR: contained and reported.
 
-    An LR part (or GR's one Gaussian refit per step) keeps the gradient two or more orders of
-    magnitude below RP's; DEL's pathwise density-gradient chain explodes like RP's and reports it
-    in its variance. TP: where σ²_RP ≫ σ²_LR nearly all weight went to LR."""
+    An LR part (the library's DEL is one; or GR's one Gaussian refit per step) keeps the gradient two
+    or more orders of magnitude below RP's; the thesis' DEL, whose density-gradient runs down the
+    pathwise chain, explodes like RP's and reports it in its variance. TP: where σ²_RP ≫ σ²_LR nearly
+    all weight went to LR."""
     outs = contained(base_updates(name, 100))
-    if name == "del":
+    if name == "del_thesis":
         v, v30 = median(outs, var_first_step), median(base_updates("rp", 30), var_first_step)
         assert v > 1e5 * v30, f"DEL: median σ²(step 1) = {v:.3g} vs RP's {v30:.3g} at T = 30"
     else:
@@ -280,7 +282,7 @@ def test_every_estimator_at_horizon_100(name):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ESTIMATORS)
 def test_overflowing_pathwise_gradient_is_refused_and_reported(name):
-    """Deep chaos (T = 100) with a policy gain ×10⁶: the pathwise chains of RP, GR and DEL reach
+    """Deep chaos (T = 100) with a policy gain ×10⁶: the pathwise chains of RP, GR and the thesis' DEL reach
     ‖g‖ ~ 10¹⁰⁵–10¹⁵⁰ or overflow; where their variance or gradient overflows the update is refused
     (``info.skipped``, θ kept) and σ²_RP reports the overflow. Every method with an LR part stays
     finite and is applied (TP and GTP restart RP's chain at every step)."""

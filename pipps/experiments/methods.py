@@ -26,9 +26,11 @@ del        DEL         density-estimation LR (thesis §3.3.1)
 =========  ==========  ============================================================================
 
 With ``estimator_choices="thesis"`` the LR parts use the thesis' eq. 4.3 baseline and TP its
-same-batch ``k_LR`` (biased, docs/estimator-bias.md); ``"library"`` uses the library defaults (the
-unbiased "previous" baseline, and for TP the leave-one-out ``k_LR``, docs/estimator-variance.md).
-A method whose estimator is the same either way (RP, DEL) does not use ``estimator_choices``.
+same-batch ``k_LR`` (biased, docs/estimator-bias.md), and DEL carries its density fit's derivative
+down the whole pathwise chain; ``"library"`` uses the library defaults (the unbiased "previous"
+baseline, for TP the leave-one-out ``k_LR`` (docs/estimator-variance.md), for DEL the fit's
+derivative one step to θ). A method whose estimator is the same either way (RP and its variants)
+does not use ``estimator_choices``.
 
 **A setting a method does not use** cannot change its experiment. It is left out of the
 experiment's identity (:func:`pipps.experiments.config.canonical`: the file name, ``config_hash``,

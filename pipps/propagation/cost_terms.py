@@ -9,9 +9,13 @@ built by :func:`plain_costs`, :func:`shaped_costs` and :func:`density_estimation
   ``Σ̂ = E[x xᵀ] − μ̂ μ̂ᵀ`` (1/P) and ``Ē = E_{N(μ̂, Σ̂)}[c]`` in closed form, the LR cost
   ``g_i = ∂Ē/∂μ̂ · m_i + ⟨∂Ē/∂Σ̂, v_i − 2 m_i μ̂ᵀ⟩`` (``m_i = x_i − μ̂``, ``v_i = x_i x_iᵀ − E[x xᵀ]``)
   and the RP cost gradient ``P·dĒ/dx_i = ∂Ē/∂μ̂ + 2 Sym(∂Ē/∂Σ̂) m_i``;
-* DEL (thesis §3.3.1): with ``q = N(μ̂, Σ̂)`` (unbiased covariance) fitted pathwise,
+* DEL down the whole pathwise chain (the thesis' reading of §3.3.1, :func:`thesis_estimator`
+  ``("del")``): with ``q = N(μ̂, Σ̂)`` (unbiased covariance) fitted pathwise,
   ``S = (1/P) Σ_j (G_j − b) log q(x_j)`` with the samples ``x_j`` held fixed, the cost
-  gradient is ``P·∂S/∂x_i`` through the fit only.
+  gradient is ``P·∂S/∂x_i`` through the fit only, carried to θ through every earlier step. As the
+  returns ``G`` already hold the later costs, a cost at step s is counted once for every step
+  t ≤ s whose fit it moves (docs/estimator-bias.md). The library's DEL takes the same ``P·∂S/∂x_i``
+  one step to θ instead (:func:`pipps.propagation.parts.density_lr`).
 
 Per-particle returns are summed without the 1/P; the sweep divides at the end, so that a
 particle's gradient is ``∂G_i/∂θ`` and the estimate is their mean.
@@ -71,7 +75,8 @@ def gaussian_logpdf(x: jax.Array, mean: jax.Array, cov: jax.Array) -> jax.Array:
 
 
 def del_gradient(x: jax.Array, returns: jax.Array, baseline: jax.Array, jitter: float = 1e-12) -> jax.Array:
-    """DEL's per-particle cost gradient P·∂S/∂x_i (the module docstring)."""
+    """DEL's ``P·∂S/∂x_i`` (the module docstring): the fitted density's score at the fixed samples,
+    differentiated through the fit ``μ̂, Σ̂`` with respect to each particle."""
     P, D = x.shape
     advantage = jax.lax.stop_gradient(returns - baseline)
     samples = jax.lax.stop_gradient(x)
@@ -117,8 +122,8 @@ class ShapedCosts(Stateless):
 
 @strategy
 class DensityEstimationCosts:
-    """DEL (thesis §3.3.1): the particles' own costs for the returns and the surrogate's
-    ``P·∂S/∂x_i`` instead of ``∇c(x_i)``.
+    """DEL down the whole pathwise chain (the thesis' reading of §3.3.1): the particles' own costs
+    for the returns and the surrogate's ``P·∂S/∂x_i`` instead of ``∇c(x_i)``.
 
     ``baseline``: ``b_t`` of the surrogate, "previous" (the previous iteration's mean return, the
     state) or "none".
@@ -158,7 +163,8 @@ def shaped_costs() -> ShapedCosts:
 
 
 def density_estimation_costs(baseline: str = "previous") -> DensityEstimationCosts:
-    """Cost terms of DEL (thesis §3.3.1) with the surrogate's baseline, "previous" or "none"."""
+    """Cost terms of the thesis' DEL (the whole pathwise chain) with the surrogate's baseline,
+    "previous" or "none"."""
     if baseline not in DEL_BASELINES:
         raise ValueError(f"DEL's baseline must be one of {DEL_BASELINES}, got {baseline!r}")
     return DensityEstimationCosts(baseline)

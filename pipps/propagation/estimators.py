@@ -15,7 +15,8 @@ shaped.
 name, label, colour and description, the library's composition and the thesis' own where it differs.
 The CLI's choices and help, the studies' labels and colours and the table in docs/estimators.md are
 read from it (:func:`estimator_table`). :func:`estimator` gives the library's, :func:`thesis_estimator`
-the thesis' (biased: the eq. 4.3 baseline and ``k_LR`` from the same batch); their settings replace a
+the thesis' (biased: the eq. 4.3 baseline and ``k_LR`` from the same batch; DEL down the whole pathwise
+chain); their settings replace a
 piece (:data:`SETTINGS`). :func:`from_spec` reads ``"tp:k_lr=previous"``, a name with settings, as the
 studies' ``--estimators`` take it. The rollout variants (``−σ_f``, ``+σ_n``, GR, fixed seed) are
 settings of :class:`pipps.particles.RolloutConfig` and of the optimizer, not of the estimator.
@@ -28,7 +29,7 @@ import dataclasses
 from pipps.propagation.combine import COMBINERS, action_nodes, inverse_variance, robust, single
 from pipps.propagation.cost_terms import DensityEstimationCosts, density_estimation_costs, plain_costs, shaped_costs
 from pipps.propagation.lr import WEIGHTINGS
-from pipps.propagation.parts import BiwLR, PlainLR, biw_lr, pathwise, plain_lr
+from pipps.propagation.parts import BiwLR, DensityLR, PlainLR, biw_lr, density_lr, pathwise, plain_lr
 from pipps.propagation.pieces import (
     LIKELIHOOD_RATIO,
     PATHWISE,
@@ -58,6 +59,9 @@ def _composition_problem(costs, parts, combiner, schedule) -> str | None:
     if LIKELIHOOD_RATIO in kinds and not costs.feeds_likelihood_ratio:
         return ("density-estimation cost terms replace the pathwise cost gradient (DEL, thesis §3.3.1): "
                 "compose them with a lone pathwise part")
+    if len(parts) == 2 and any(isinstance(p, DensityLR) for p in parts):
+        return ("DEL's LR part estimates the gradient through the particles' fitted density, not each particle's "
+                "own; total propagation does not weigh it against a pathwise part: compose it alone")
     return None
 
 
@@ -135,6 +139,7 @@ class NamedEstimator:
     description: str  # what it is; docs/estimators.md's table (Markdown)
     estimator: Estimator  # the library's composition
     thesis: Estimator | None = None  # the thesis' own choices, where they differ (eq. 4.3 baseline, batch k_LR)
+    thesis_variant: str | None = None  # how the thesis' differs, where that is not its baseline and k_LR
 
     @property
     def weighs_parts(self) -> bool:
@@ -172,8 +177,11 @@ ESTIMATORS: dict[str, NamedEstimator] = {e.name: e for e in (
                    compose(shaped_costs(), pathwise(), biw_lr(), combiner=inverse_variance()), _thesis_tp(shaped_costs())),
     NamedEstimator("glr", "GLR", (140, 86, 75), "Gaussian-shaped LR (thesis §3.3.2)",
                    compose(shaped_costs(), biw_lr()), compose(shaped_costs(), biw_lr("thesis"))),
-    NamedEstimator("del", "DEL", (127, 127, 127), "density-estimation LR (thesis §3.3.1)",
-                   compose(density_estimation_costs(), pathwise())),
+    NamedEstimator("del", "DEL", (127, 127, 127),
+                   "density-estimation LR (thesis §3.3.1): the score of a Gaussian fitted to the particles, "
+                   "taken to θ through each step's own controls",
+                   compose(plain_costs(), density_lr()), compose(density_estimation_costs(), pathwise()),
+                   "the fit's derivative down the whole pathwise chain (counts a cost once per earlier step)"),
 )}
 
 NAMED = tuple(ESTIMATORS)
@@ -189,6 +197,8 @@ def _reweighted(name: str, parts: tuple, weighting: str) -> tuple:
         raise ValueError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
     if LIKELIHOOD_RATIO not in (p.kind for p in parts):
         raise ValueError(f"weighting applies to a likelihood-ratio part, and {name!r} has none")
+    if any(isinstance(p, DensityLR) for p in parts):
+        raise ValueError(f"weighting: {name!r}'s LR part scores a fitted density, which has no batch weighting")
 
     def swap(p):
         if p.kind != LIKELIHOOD_RATIO:
@@ -203,6 +213,8 @@ def _reweighted(name: str, parts: tuple, weighting: str) -> tuple:
 def _rebaselined(name: str, costs, parts: tuple, baseline: str):
     if isinstance(costs, DensityEstimationCosts):
         return density_estimation_costs(baseline), parts
+    if any(isinstance(p, DensityLR) for p in parts):
+        return costs, tuple(density_lr(baseline) if isinstance(p, DensityLR) else p for p in parts)
     if any(isinstance(p, BiwLR) for p in parts):
         return costs, tuple(biw_lr(baseline) if isinstance(p, BiwLR) else p for p in parts)
     if any(isinstance(p, PlainLR) for p in parts):
@@ -263,7 +275,8 @@ def estimator(name: str, **settings) -> Estimator:
 
 
 def thesis_estimator(name: str, **settings) -> Estimator:
-    """The thesis' own (biased) choices: the eq. 4.3 baseline and k_LR from the same batch."""
+    """The thesis' own (biased) choices: the eq. 4.3 baseline and k_LR from the same batch; DEL's fit
+    derivative down the whole pathwise chain."""
     entry = named(name)
     return with_settings(name, entry.thesis or entry.estimator, **settings)
 
@@ -307,6 +320,6 @@ def estimator_table() -> str:
     """The Markdown table of the named estimators that docs/estimators.md shows."""
     rows = ["| name | label | what it is | the thesis' variant |", "|---|---|---|---|"]
     for e in ESTIMATORS.values():
-        variant = "eq. 4.3 baseline" + (", `\"batch\"` k_LR" if e.weighs_parts else "") if e.thesis else "the same"
+        variant = e.thesis_variant or ("eq. 4.3 baseline" + (", `\"batch\"` k_LR" if e.weighs_parts else "") if e.thesis else "the same")
         rows.append(f"| `{e.name}` | {e.label} | {e.description} | {variant} |")
     return "\n".join(rows) + "\n"

@@ -8,6 +8,13 @@ A part is a strategy piece with a ``kind`` and ``zeta(state, inputs, config) -> 
   pulls x-cotangents back only when a pathwise part is present.
 * :func:`biw_lr` (BIW-LR, thesis eq. 4.2–4.3) with its baseline, "previous", "thesis" or "none".
 * :func:`plain_lr`: no batch weighting, the leave-one-out baseline.
+* :func:`density_lr` (DEL, thesis §3.3.1): the LR gradient of a Gaussian ``q_t`` fitted to the
+  particles, ``γ_j = a_j ∂x_{j,t}/∂ζ_{j,t}`` with ``a_j = P·∂S_t/∂x_{j,t}`` and
+  ``S_t = (1/P) Σ_i (G_{i,t} − b_t) log q_t(x_{i,t})``, the samples in ``log q_t`` held fixed. Like
+  every LR part it reaches θ through step t's own controls only (``x_{t−1}`` held fixed): each
+  cost is counted once, at every step that moves it, as in the LR identity
+  ``∇J = Σ_t E[G_t ∇_θ log p(x_t | x_{t−1}; θ)]`` with the fitted marginal in place of the
+  conditional density.
 
 The sweep carries every part's γ to θ through the same direct path and hands the per-particle
 θ-gradients to the combiner (:mod:`~pipps.propagation.combine`). Each is a
@@ -22,6 +29,7 @@ import jax.numpy as jnp
 
 from pipps.particles.forward import RolloutConfig, gaussian_resample
 from pipps.propagation import lr
+from pipps.propagation.cost_terms import DEL_BASELINES, del_gradient
 from pipps.propagation.lr import BASELINES, ZetaGrad
 from pipps.propagation.pieces import LIKELIHOOD_RATIO, PATHWISE, InitContext, MeanReturn, Stateless, StepInputs
 from pipps.propagation.strategy import strategy
@@ -78,6 +86,28 @@ class PlainLR(Stateless):
         return state, lr.plain_lr(inputs.x, inputs.mean, inputs.std, inputs.returns)
 
 
+@strategy
+class DensityLR:
+    """DEL's likelihood-ratio part (thesis §3.3.1): the fitted density's score, one step to θ.
+
+    ``baseline``: ``b_t``, "previous" (the previous iteration's mean return, the state) or "none".
+    """
+
+    baseline: str = "previous"
+
+    kind = LIKELIHOOD_RATIO
+    cold_start = False  # the first iteration's baseline comes from the extra rollout
+
+    def init(self, context: InitContext) -> MeanReturn | tuple:
+        return MeanReturn(context.mean_returns()) if self.baseline == "previous" else ()
+
+    def zeta(self, state, inputs: StepInputs, config: RolloutConfig) -> tuple[MeanReturn | tuple, ZetaGrad]:
+        b = state.mean_return if self.baseline == "previous" else 0.0
+        a = del_gradient(inputs.x, inputs.returns, b)
+        next_state = MeanReturn(jnp.mean(inputs.returns)) if self.baseline == "previous" else ()
+        return next_state, rp_zeta(a, inputs.mean, inputs.std, inputs.eps, config)
+
+
 def pathwise() -> Pathwise:
     """The RP part."""
     return Pathwise()
@@ -93,3 +123,10 @@ def biw_lr(baseline: str = "previous") -> BiwLR:
 def plain_lr() -> PlainLR:
     """The plain-LR part."""
     return PlainLR()
+
+
+def density_lr(baseline: str = "previous") -> DensityLR:
+    """DEL's LR part; ``baseline`` is "previous" (the default) or "none"."""
+    if baseline not in DEL_BASELINES:
+        raise ValueError(f"DEL's baseline must be one of {DEL_BASELINES}, got {baseline!r}")
+    return DensityLR(baseline)
