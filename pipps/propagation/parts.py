@@ -11,8 +11,8 @@ A part is a strategy piece with a ``kind`` and ``zeta(state, inputs, config) -> 
 * :func:`density_lr` (DEL, thesis §3.3.1): the LR gradient of a Gaussian ``q_t`` fitted to the
   particles, ``γ_j = a_j ∂x_{j,t}/∂ζ_{j,t}`` with ``a_j = P·∂S_t/∂x_{j,t}`` and
   ``S_t = (1/P) Σ_i (G_{i,t} − b_t) log q_t(x_{i,t})``, the samples in ``log q_t`` held fixed. Like
-  every LR part it reaches θ through step t's own controls only (``x_{t−1}`` held fixed): each
-  cost is counted once, at every step that moves it, as in the LR identity
+  every LR part it reaches θ through step t's own controls only (``x_{t−1}`` held fixed), so a
+  cost reaches θ once through the controls of each step before it, as in the LR identity
   ``∇J = Σ_t E[G_t ∇_θ log p(x_t | x_{t−1}; θ)]`` with the fitted marginal in place of the
   conditional density.
 
