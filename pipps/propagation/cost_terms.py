@@ -21,7 +21,7 @@ Per-particle returns are summed without the 1/P; the sweep divides at the end, s
 particle's gradient is ``∂G_i/∂θ`` and the estimate is their mean.
 
 Each is a :class:`~pipps.propagation.pieces.CostTerms`. DEL with the "previous" baseline keeps the
-previous iteration's mean return per step as its state (:class:`~pipps.propagation.pieces.MeanReturn`);
+previous iteration's mean return per step as its state (:class:`~pipps.propagation.pieces.PreviousBaseline`);
 the others have none.
 """
 
@@ -30,7 +30,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from pipps.propagation.pieces import InitContext, MeanReturn, Stateless, StepCosts
+from pipps.propagation.pieces import MeanReturn, PreviousBaseline, Stateless, StepCosts
 from pipps.propagation.strategy import strategy
 
 DEL_BASELINES = ("previous", "none")
@@ -121,7 +121,7 @@ class ShapedCosts(Stateless):
 
 
 @strategy
-class DensityEstimationCosts:
+class DensityEstimationCosts(PreviousBaseline):
     """DEL down the whole pathwise chain (the thesis' reading of §3.3.1): the particles' own costs
     for the returns and the surrogate's ``P·∂S/∂x_i`` instead of ``∇c(x_i)``.
 
@@ -132,10 +132,6 @@ class DensityEstimationCosts:
     baseline: str = "previous"
 
     feeds_likelihood_ratio = False
-    cold_start = False  # the first iteration's baseline comes from the extra rollout
-
-    def init(self, context: InitContext) -> MeanReturn | tuple:
-        return MeanReturn(context.mean_returns()) if self.baseline == "previous" else ()
 
     def returns(self, cost, x, c):
         del cost, x
@@ -144,11 +140,8 @@ class DensityEstimationCosts:
     def step(self, state, cost, x, c, returns_next, *, gradient: bool) -> tuple[MeanReturn | tuple, StepCosts]:
         del cost
         returns = returns_next + c
-        dc = None
-        if gradient:
-            b = state.mean_return if self.baseline == "previous" else 0.0
-            dc = del_gradient(x, returns, b)
-        next_state = MeanReturn(jnp.mean(returns)) if self.baseline == "previous" else ()
+        b, next_state = self.previous_baseline(state, returns)
+        dc = del_gradient(x, returns, b) if gradient else None
         return next_state, StepCosts(c, dc, jnp.mean(c))
 
 

@@ -25,13 +25,12 @@ previous iteration's mean return per step as its state (:class:`~pipps.propagati
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 
 from pipps.particles.forward import RolloutConfig, gaussian_resample
 from pipps.propagation import lr
 from pipps.propagation.cost_terms import DEL_BASELINES, del_gradient
 from pipps.propagation.lr import BASELINES, ZetaGrad
-from pipps.propagation.pieces import LIKELIHOOD_RATIO, PATHWISE, InitContext, MeanReturn, Stateless, StepInputs
+from pipps.propagation.pieces import LIKELIHOOD_RATIO, PATHWISE, MeanReturn, PreviousBaseline, Stateless, StepInputs
 from pipps.propagation.strategy import strategy
 
 
@@ -55,24 +54,20 @@ class Pathwise(Stateless):
 
 
 @strategy
-class BiwLR:
+class BiwLR(PreviousBaseline):
     """Batch-importance-weighted LR (thesis eq. 4.2) with ``baseline`` ("thesis": eq. 4.3)."""
 
     baseline: str = "previous"
 
     kind = LIKELIHOOD_RATIO
-    cold_start = False  # the first iteration's baseline comes from the extra rollout
-
-    def init(self, context: InitContext) -> MeanReturn | tuple:
-        return MeanReturn(context.mean_returns()) if self.baseline == "previous" else ()
 
     def zeta(self, state, inputs: StepInputs, config: RolloutConfig) -> tuple[MeanReturn | tuple, ZetaGrad]:
         del config
         x, mean, std, returns = inputs.x, inputs.mean, inputs.std, inputs.returns
         if self.baseline != "previous":
             return state, lr.biw_lr(x, mean, std, returns, self.baseline)
-        gamma = lr.biw_lr(x, mean, std, returns, self.baseline, state.mean_return)
-        return MeanReturn(jnp.mean(returns)), gamma
+        b, next_state = self.previous_baseline(state, returns)
+        return next_state, lr.biw_lr(x, mean, std, returns, self.baseline, b)
 
 
 @strategy
@@ -87,7 +82,7 @@ class PlainLR(Stateless):
 
 
 @strategy
-class DensityLR:
+class DensityLR(PreviousBaseline):
     """DEL's likelihood-ratio part (thesis §3.3.1): the fitted density's score, one step to θ.
 
     ``baseline``: ``b_t``, "previous" (the previous iteration's mean return, the state) or "none".
@@ -96,15 +91,10 @@ class DensityLR:
     baseline: str = "previous"
 
     kind = LIKELIHOOD_RATIO
-    cold_start = False  # the first iteration's baseline comes from the extra rollout
-
-    def init(self, context: InitContext) -> MeanReturn | tuple:
-        return MeanReturn(context.mean_returns()) if self.baseline == "previous" else ()
 
     def zeta(self, state, inputs: StepInputs, config: RolloutConfig) -> tuple[MeanReturn | tuple, ZetaGrad]:
-        b = state.mean_return if self.baseline == "previous" else 0.0
+        b, next_state = self.previous_baseline(state, inputs.returns)
         a = del_gradient(inputs.x, inputs.returns, b)
-        next_state = MeanReturn(jnp.mean(inputs.returns)) if self.baseline == "previous" else ()
         return next_state, rp_zeta(a, inputs.mean, inputs.std, inputs.eps, config)
 
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 from typing import Any, Callable, NamedTuple, Protocol, runtime_checkable
 
 import jax
+import jax.numpy as jnp
 
 from pipps.propagation.lr import ZetaGrad
 
@@ -63,6 +64,22 @@ class MeanReturn(NamedTuple):
     """The state of a piece with the "previous" baseline (BIW-LR, DEL)."""
 
     mean_return: jax.Array  # (T,) mean_i G_{i,t} of the previous iteration (first: of the extra rollout)
+
+
+class PreviousBaseline:
+    """What a piece with a ``baseline`` setting shares (BIW-LR, both DELs): with "previous", its state
+    is the previous iteration's mean return per step (first: of the extra rollout); otherwise ``()``."""
+
+    cold_start = False  # the first iteration's baseline comes from the extra rollout
+
+    def init(self, context: InitContext) -> MeanReturn | tuple:
+        return MeanReturn(context.mean_returns()) if self.baseline == "previous" else ()
+
+    def previous_baseline(self, state, returns: jax.Array) -> tuple[jax.Array | float, MeanReturn | tuple]:
+        """(``b_t``, the next state): the stored mean return and this batch's, or (0, ``()``)."""
+        if self.baseline != "previous":
+            return 0.0, state
+        return state.mean_return, MeanReturn(jnp.mean(returns))
 
 
 class Stateless:
