@@ -43,20 +43,23 @@ queue=(
   "--table 4.1 --k 1 --methods tp-sf --seeds 5"
   "--table 4.1 --k 1 --methods rp_fs,gr_fs --seeds 10"
   "--table 4.1 --k 1 --methods tp-sf --seeds 10"
-  # groups 2-3: Tip Cost GR, then GLR on both costs (Table 4.3's sweep runs Tip and Angle), then 5-9
+  # groups 2-3: Tip Cost GR, then GLR on both costs (Table 4.3's sweep runs Tip and Angle)
   "--table 4.2 --k 1 --methods gr --seeds 5"
   "--table 4.3 --k 1 --methods glr --seeds 5"
-  "--table 4.2 --k 1 --methods pilco --seeds 10"
-  "--table 4.2 --k 1 --methods tp,gr --seeds 10"
-  "--table 4.3 --k 1 --methods gtp,glr --seeds 10"
-  # group 4: unicycle, 5 seeds per cell
-  "--table 4.4 --methods pilco --seeds 5"
-  "--table 4.4 --methods rp,lr,tp --seeds 5"
-  # group 5: DEL on cart-pole balancing, TP beside it (their learning curves, thesis Fig. 4.17a):
+  # then seeds 0-4 of the cells no run has reached, so that at any stop every claim has a
+  # comparable count (the issue's breadth-first order across groups, not only within one):
+  # group 5, DEL on cart-pole balancing, TP beside it (their learning curves, thesis Fig. 4.17a):
   # the thesis preset's DEL (its fit's derivative down the whole pathwise chain), then the library's
   # (one step to θ, consistent; docs/estimator-bias.md) in the sibling folder del-library/
   "--table del --seeds 5"
   "--table del --methods del --seeds 5 --set estimator_choices=library --out {parent}/del-library"
+  # group 4: unicycle, 5 seeds per cell
+  "--table 4.4 --methods pilco --seeds 5"
+  "--table 4.4 --methods rp,lr,tp --seeds 5"
+  # last, seeds 5-9 of groups 2-3
+  "--table 4.2 --k 1 --methods pilco --seeds 10"
+  "--table 4.2 --k 1 --methods tp,gr --seeds 10"
+  "--table 4.3 --k 1 --methods gtp,glr --seeds 10"
 )
 worker() {
   local core=$1 q
