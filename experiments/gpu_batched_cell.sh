@@ -17,23 +17,7 @@ OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
 CELL=/tmp/gpu_cell; mkdir -p "$CELL"
 t0=$(date +%s)
 nvidia-smi --query-gpu=name,memory.total,clocks.sm,clocks.max.sm --format=csv,noheader
-python3 - <<'PY'
-import time, jax, jax.numpy as jnp
-jax.config.update("jax_enable_x64", True)
-print("jax", jax.__version__, jax.devices())
-def rate(shape_a, shape_b, reps=20):
-    ka, kb = jax.random.split(jax.random.PRNGKey(0))
-    a = jax.random.normal(ka, shape_a, jnp.float64); b = jax.random.normal(kb, shape_b, jnp.float64)
-    f = jax.jit(jnp.matmul); f(a, b).block_until_ready()
-    t = time.perf_counter()
-    for _ in range(reps): c = f(a, b)
-    c.block_until_ready(); dt = (time.perf_counter() - t) / reps
-    flops = 2 * a.size * b.shape[-1]
-    return flops / dt / 1e12, dt
-for sa, sb in [((8192, 8192), (8192, 8192)), ((400, 300, 300), (400, 300, 300)), ((40, 300, 300), (40, 300, 300))]:
-    tf, dt = rate(sa, sb)
-    print(f"float64 GEMM {sa} @ {sb}: {tf:.2f} Tflop/s ({dt*1e3:.3f} ms)")
-PY
+python3 benchmarks/machine.py 8192 400x300 40x300  # the device's float64 GEMM rates
 if [ "${SMOKE:-1}" = 1 ]; then
 echo "== smoke: quick preset, 2 seeds, 1 learned trial, vmapped ($(( $(date +%s) - t0 )) s)"
 timeout 150 python3 -m pipps.cli sweep --table 4.1 --k 1 --methods tp --seeds 2 --preset quick \
