@@ -283,6 +283,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "as pipps table)")
     pl.add_argument("--custom", action="store_true",
                     help="cells/curves: also count results whose settings depart from the preset")
+    pl.add_argument("--by", default=None, metavar="SETTING",
+                    help="cells/curves: draw the results apart by one setting's value (e.g. estimator_choices), as "
+                         "pipps table --by compares them: curves, a panel per cell and value; cells, a panel per "
+                         "value; results that depart from the preset only in SETTING count without --custom")
     pl.add_argument("--task", dest="tasks", action="append", default=[], metavar="MODULE:ATTRIBUTE",
                     help="where to find a task of your own whose results are drawn, when its stored source has moved "
                          "(repeatable)")
@@ -850,6 +854,14 @@ def _cmd_plot(args) -> int:
             raise UsageError(f"--figure {figure} draws a study file (pipps study {figure} / pipps bench output)")
     if args.table is not None and figure not in ("cells", "curves"):
         raise UsageError("--table selects the cells of --figure cells or curves")
+    if args.by is not None:
+        from pipps.reporting.tables import comparable_settings
+
+        if figure not in ("cells", "curves"):
+            raise UsageError("--by draws the cells of --figure cells or curves apart by a setting")
+        if args.by not in comparable_settings():
+            raise UsageError(f"--by {args.by}: not a setting of an experiment; choose one of "
+                             f"{', '.join(comparable_settings())}")
     if args.svg and figure == "overview":
         raise UsageError("--svg writes a figure for a paper (--figure cells, curves, diagnostics or a study's figure); "
                          "the overview is an interactive recording (--png renders it)")
@@ -926,7 +938,8 @@ def _table_figure(figure, paths, args, outs):
     from pipps import charts as ch
     from pipps.experiments.results import read_summary
     from pipps.reporting import figures as f
-    from pipps.reporting.tables import TABLES, cell_summaries, collect, get_table, judge_counted, result_tables
+    from pipps.reporting.tables import (TABLES, cell_summaries, collect, counts, get_table, group_table, grouped,
+                                        judge_counted, result_tables, split_by)
 
     summaries = _read_each(paths, read_summary)
     try:
@@ -937,8 +950,20 @@ def _table_figure(figure, paths, args, outs):
     if note:
         print(note, file=sys.stderr)
     tables = [_labelled(t, args.preset) for t in tables]
+    custom = args.custom
+    if args.by is not None:  # as pipps table --by: what departs from the preset only in that setting counts
+        summaries = [s for s in summaries if not counts(s["config"], args.preset, args.custom, vary=args.by)]
+        custom = True
     if figure == "curves":
-        filled = [(t, [(c, cell_summaries(t, c, summaries, args.preset, args.custom)) for c in t.cells]) for t in tables]
+        if args.by is None:
+            filled = [(t, [(c, cell_summaries(t, c, summaries, args.preset, custom)) for c in t.cells]) for t in tables]
+        else:
+            groups = split_by(summaries, args.by)
+            filled = []
+            for t in tables:
+                g = grouped(t, args.by, [value for value, _ in groups])
+                rows = {c.row: rs for (value, rs) in groups for c in grouped(t, args.by, [value]).cells}
+                filled.append((g, [(c, cell_summaries(g, c, rows[c.row], args.preset, custom)) for c in g.cells]))
         filled = [(t, cells) for t, cells in filled if any(rs for _, rs in cells)]
         if len(filled) > 1:
             raise UsageError(f"the results fill cells of tables {', '.join(t.name for t, _ in filled)}: pick one with --table")
@@ -950,10 +975,14 @@ def _table_figure(figure, paths, args, outs):
             f.record_curves(table, cells, out)
         n = sum(len(rs) for _, rs in cells)
         return ch.size(f.curves_figure(table, cells)), f"learning curves of {n} experiments in table {table.name}"
-    judged, errors = judge_counted(summaries, args.preset, args.custom)
+    judged, errors = judge_counted(summaries, args.preset, custom)
     for err in errors.values():
         print(f"  not counted: {err}", file=sys.stderr)
-    filled = [(t, collect(t, judged, args.preset, args.custom)) for t in tables]
+    if args.by is None:
+        filled = [(t, collect(t, judged, args.preset, custom)) for t in tables]
+    else:
+        filled = [(group_table(t, args.by, value), collect(t, rs, args.preset, custom))
+                  for t in tables for value, rs in split_by(judged, args.by)]
     filled = [(t, cells) for t, cells in filled if any(c.n for c in cells)]
     if not filled:
         raise UsageError(f"no result of the {args.preset} preset counts in "

@@ -764,6 +764,34 @@ def test_cli_table_by_a_setting_prints_each_value_and_names_a_bad_setting(tiny_r
     assert "--by estimator: not a setting" in capsys.readouterr().err
 
 
+def test_cli_plot_by_a_setting_draws_each_value_apart(tiny_result, tmp_path, capsys):
+    """--by keeps two readings of one method apart in a figure, as pipps table --by does in a table."""
+    from pipps.cli import main
+
+    _, path = tiny_result
+    folder = tmp_path / "res"
+    folder.mkdir()
+    cfg = resolve_config("thesis", "cartpole_swingup", method="tp", k=1.0, num_learned=1)
+    result = read_result(path)
+    for name, choices in (("lib.h5", "library"), ("thesis.h5", "thesis")):
+        result.config = cfg.replace(estimator_choices=choices)
+        write_result(folder / name, result)
+    for figure in ("curves", "cells"):
+        svg = tmp_path / f"{figure}.svg"
+        argv = ["plot", str(folder), "--figure", figure, "--table", "4.1", "--custom", "--out", str(tmp_path / "x.rrd"),
+                "--svg", str(svg), "--overwrite"]
+        assert main(argv + ["--by", "estimator_choices"]) == 0
+        text = svg.read_text()
+        assert "estimator_choices = library" in text and "estimator_choices = thesis" in text, figure
+        assert main(argv) == 0  # without --by the two files pool into one cell
+        assert "estimator_choices =" not in svg.read_text(), figure
+    assert "learning curves of 2 experiments" in capsys.readouterr().out
+    assert main(["plot", str(folder), "--figure", "curves", "--by", "estimator", "--out", str(tmp_path / "y.rrd")]) == 2
+    assert "--by estimator: not a setting" in capsys.readouterr().err
+    assert main(["plot", str(folder), "--by", "estimator_choices", "--out", str(tmp_path / "z.rrd")]) == 2
+    assert "--by draws the cells of --figure cells or curves" in capsys.readouterr().err
+
+
 def test_plot_writes_a_recording_of_the_curves(tiny_result, tmp_path):
     from pipps.reporting.plot import curve, record
 

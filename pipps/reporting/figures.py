@@ -166,7 +166,8 @@ def curves_figure(table: Table, cells: list[tuple[Cell, list[dict[str, Any]]]]) 
         for m in methods:
             c, rs = by.get((row, m), (None, []))
             name = f"{row + ', ' if table.row_in_titles else ''}{METHODS[m].label}"
-            path = f"curves/{row}_{m}".replace(" ", "").replace("=", "").replace(".", "p").replace("⁻", "m")
+            path = (f"curves/{row}_{m}".replace(" ", "").replace("=", "").replace(".", "p").replace("⁻", "m")
+                    .replace(",", "_"))
             seeds = f"{len(rs)} seed{'s' if len(rs) != 1 else ''}" if rs else "no results"
             charts.append(ch.chart(path, f"{name}: {seeds}", x, y, PANEL))
             if fractions:

@@ -675,6 +675,28 @@ def split_by(summaries: list[dict[str, Any]], setting: str) -> list[tuple[Any, l
     return list(groups.values())
 
 
+def grouped(table: Table, setting: str, values: Iterable[Any]) -> Table:
+    """``table`` with each row once per value of ``setting`` (:func:`split_by`'s groups), the value in
+    the row's name (``"k = 1, estimator_choices = library"``), so that the groups' cells stand side by
+    side in one figure; a cell keeps its method and values, so :func:`cell_summaries` of one group's
+    results fills it. A table named after its task alone gets the values as its rows' names."""
+    values = list(values)
+
+    def name(row: str, value: Any) -> str:
+        return f"{row + ', ' if table.row_in_titles else ''}{setting} = {value}"
+
+    rows = tuple(name(row, v) for row in table.rows for v in values)
+    cells = tuple(dataclasses.replace(c, row=name(c.row, v)) for c in table.cells for v in values)
+    return dataclasses.replace(table, title=f"{table.title}, by {setting}", rows=rows, cells=cells, row_in_titles=True)
+
+
+def group_table(table: Table, setting: str, value: Any) -> Table:
+    """``table`` for one value of ``setting`` (:func:`split_by`'s group): the same rows and cells, the
+    value in its name and title, so that each group draws as a panel of its own."""
+    slug = "".join(ch if ch.isalnum() else "_" for ch in f"{setting}_{value}")
+    return dataclasses.replace(table, name=f"{table.name}_{slug}", title=f"{table.title}, {setting} = {value}")
+
+
 def _rate(r: CellResult | None) -> str:
     """A cell's headline rate with its interval and seeds, and its per-seed physical count."""
     if r is None or not r.n or r.headline is None:
