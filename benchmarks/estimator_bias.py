@@ -48,7 +48,9 @@ from jax.flatten_util import ravel_pytree
 import pipps
 from pipps.experiments.storage import OutputError, check_new_file, publish
 from pipps.particles.forward import RolloutConfig
-from pipps.propagation.estimators import estimator, thesis_estimator
+from pipps.propagation.cost_terms import density_estimation_costs
+from pipps.propagation.estimators import compose, estimator, thesis_estimator
+from pipps.propagation.parts import pathwise
 from pipps.stats import replicate_gradients, z_bound
 from pipps.systems import exact_objective, reference_system
 
@@ -64,6 +66,8 @@ ESTIMATORS = {
     "tp previous": (estimator("tp", k_lr="previous"), (30, 100), "TP, previous baseline, previous k (unbiased control)"),
     "del thesis preset": (thesis_estimator("del"), (30, 100), "DEL (thesis §3.3.1), pathwise fit derivative, returns-to-go"),
     "del (default)": (estimator("del"), (30, 100, 300), "DEL, the fit's derivative one step to θ (consistent: bias O(1/P))"),
+    "del own-cost": (compose(density_estimation_costs(weights="cost"), pathwise()), (30, 100, 300),
+                     "DEL, pathwise fit derivative, each step's own cost as the weight"),
 }
 NOISE_STDS = (0.1, 0.3)
 COST = "saturating"

@@ -51,8 +51,11 @@ queue=(
   # group 5, DEL on cart-pole balancing, TP beside it (their learning curves, thesis Fig. 4.17a):
   # the thesis preset's DEL (its fit's derivative down the whole pathwise chain), then the library's
   # (one step to θ, consistent; docs/estimator-bias.md) in the sibling folder del-library/
-  "--table del --seeds 5"
+  "--table del --methods del,tp --seeds 5"
   "--table del --methods del --seeds 5 --set estimator_choices=library --out {parent}/del-library"
+  # DEL_c (each step's own cost as the weight, down the whole chain; a third reading, code >= the
+  # commit that added the method `del-cost`: older code refuses the entry and the worker goes on)
+  "--table del --methods del-cost --seeds 5"
   # group 4: unicycle, 5 seeds per cell
   "--table 4.4 --methods pilco --seeds 5"
   "--table 4.4 --methods rp,lr,tp --seeds 5"

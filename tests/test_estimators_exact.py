@@ -17,7 +17,9 @@ from pipps.gp import fit, make_data
 from pipps.particles.forward import RolloutConfig, particle_rollout, particle_step, reparameterized_objective, sample_noise
 from pipps.policies import init_rbf_policy
 from pipps.propagation import cost_terms, lr
-from pipps.propagation.estimators import estimator, thesis_estimator
+from pipps.propagation.cost_terms import density_estimation_costs
+from pipps.propagation.estimators import compose, estimator, thesis_estimator
+from pipps.propagation.parts import pathwise
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.rollout import rollout, training_pairs
 from pipps.tasks.presets import make_task
@@ -106,15 +108,15 @@ def test_gtp_with_k_fixed_reduces_to_shaped_rp_and_glr(setup):
     assert float(g0.value) == pytest.approx(float(j_gs(pol)), rel=1e-13)
 
 
-def _del_surrogate(setup, cfg, key, one_step):
+def _del_surrogate(setup, cfg, key, one_step, own_cost=False):
     """Σ_t (1/P) Σ_i G_{i,t} log q_t(x_{i,t}) as a function of θ, the samples and G held at their
     values: ``q_t`` fitted to the particles of a rollout under θ (``one_step=False``: every step
     under θ, the thesis' DEL) or of one model step under θ from the recorded ``x_{t−1}`` (the
-    library's DEL)."""
+    library's DEL); ``own_cost``: each step's own cost ``c_{i,t}`` in place of ``G_{i,t}``."""
     task, post, pol = setup
     noise = sample_noise(jax.random.PRNGKey(key), task, cfg)
     rec = particle_rollout(task, pol, post, noise, cfg, jacobian=False)
-    returns = jnp.cumsum(rec.cost[::-1], axis=0)[::-1]  # (T, P)
+    returns = rec.cost if own_cost else jnp.cumsum(rec.cost[::-1], axis=0)[::-1]  # (T, P)
 
     def fitted(p):
         if not one_step:
@@ -144,6 +146,18 @@ def test_del_gradient_equals_autodiff_of_its_surrogate(setup, choices):
     ref, other = (one_step, chain) if choices == "library" else (chain, one_step)
     np.testing.assert_allclose(flat(e.grad), ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
     assert np.linalg.norm(one_step - chain) > 0.1 * np.linalg.norm(ref)  # the two readings differ here
+
+
+def test_whole_chain_del_weighted_by_each_steps_cost_equals_autodiff_of_its_surrogate(setup):
+    """The third reading: the whole chain, each particle's fitted score weighted by its own cost
+    c_{i,t} instead of its return-to-go."""
+    cfg = RolloutConfig(num_particles=P)
+    e = run(setup, compose(density_estimation_costs("none", weights="cost"), pathwise()), cfg)
+    ref, returns = (flat(jax.grad(_del_surrogate(setup, cfg, 3, False, own))(setup[2])) for own in (True, False))
+    np.testing.assert_allclose(flat(e.grad), ref, rtol=1e-8, atol=1e-10 * np.abs(ref).max())
+    assert np.linalg.norm(ref - returns) > 0.1 * np.linalg.norm(ref)  # the weights matter here
+    with pytest.raises(ValueError, match="weights must be one of"):
+        density_estimation_costs(weights="return")
 
 
 def _direct_biw(x, mean, std, G, baseline):

@@ -46,7 +46,9 @@ from jax.flatten_util import ravel_pytree
 from jax.tree_util import register_dataclass
 
 from pipps.particles.forward import RolloutConfig, reparameterized_objective, sample_noise
-from pipps.propagation.estimators import estimator, thesis_estimator
+from pipps.propagation.cost_terms import density_estimation_costs
+from pipps.propagation.estimators import compose, estimator, thesis_estimator
+from pipps.propagation.parts import pathwise
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.stats import replicate_gradients, z_bound
 from pipps.systems import exact_objective, reference_system
@@ -70,6 +72,9 @@ UNBIASED = {
 }
 CONSISTENT = {
     "del": estimator("del"),  # the fitted density's score, one step to θ: bias from the fit alone, O(1/P)
+    # the fit's derivative down the whole chain, each step's own cost as the weight (the LR identity of
+    # each step's marginal): again the fit's error alone
+    "del_own_cost": compose(density_estimation_costs(weights="cost"), pathwise()),
 }
 BIASED = {
     "lr_thesis": estimator("lr", baseline="thesis"),
@@ -208,6 +213,7 @@ CONSISTENCY = [
     # (estimator, replicates, expected to pass)
     pytest.param("del", R_DEFAULT, True, id="del-library"),
     pytest.param("del_thesis", R_DEFAULT, False, id="del-thesis-fails", marks=pytest.mark.slow),
+    pytest.param("del_own_cost", R_DEFAULT, True, id="del-own-cost", marks=pytest.mark.slow),
 ]
 
 

@@ -56,9 +56,11 @@ BEFORE = {
     "glr": ("glr", True, None, "none", MOMENTUM),
     "gtp+sn": ("gtp", True, "noise_boost_gtp", "none", MOMENTUM),
     "del": ("del", True, None, "none", MOMENTUM),
+    "del-cost": ("del_cost", True, None, "none", MOMENTUM),
 }
 LABELS = {"pilco": "PILCO", "rp": "RP", "rp_fs": "RP_FS", "gr": "GR", "gr_fs": "GR_FS", "lr": "LR", "tp": "TP",
-          "tp-sf": "TP−σ_f", "tp+sn": "TP+σ_n", "gtp": "GTP", "glr": "GLR", "gtp+sn": "GTP+σ_n", "del": "DEL"}
+          "tp-sf": "TP−σ_f", "tp+sn": "TP+σ_n", "gtp": "GTP", "glr": "GLR", "gtp+sn": "GTP+σ_n", "del": "DEL",
+          "del-cost": "DEL_c"}
 FIELDS = {f.name for f in dataclasses.fields(ExperimentConfig)}
 
 

@@ -45,7 +45,7 @@ pytestmark = pytest.mark.stress
 
 P = 32
 TASK = make_task("cartpole_swingup", horizon=8)  # 8-step random rollouts for the data; T is set per case
-ESTIMATORS = ("rp", "lr", "lr_plain", "tp", "tp_loo", "gtp", "glr", "del", "del_thesis", "gr")  # "gr": RP with Gaussian resampling
+ESTIMATORS = ("rp", "lr", "lr_plain", "tp", "tp_loo", "gtp", "glr", "del", "del_thesis", "del_cost", "gr")  # "gr": RP with Gaussian resampling
 # The suite's TP and GTP weigh with k_LR "previous" (on a first iteration: this batch's weight), the
 # rule the k_LR assertions below are about; "tp_loo" is the library's TP now
 # (leave-one-out weights, one per particle), checked for containment and reporting.
@@ -259,14 +259,14 @@ def test_horizon_rp_variance_growth_is_reported(T):
 
 @pytest.mark.parametrize("name", [n if n == "tp" else pytest.param(n, marks=pytest.mark.slow) for n in ESTIMATORS if n != "rp"])
 def test_every_estimator_at_horizon_100(name):
-    """The same deep chaos for LR, plain LR, TP, GTP, GLR, both DELs and GR: contained and reported.
+    """The same deep chaos for LR, plain LR, TP, GTP, GLR, the three DELs and GR: contained and reported.
 
     An LR part (the library's DEL is one; or GR's one Gaussian refit per step) keeps the gradient two
-    or more orders of magnitude below RP's; the thesis' DEL, whose density-gradient runs down the
-    pathwise chain, explodes like RP's and reports it in its variance. TP: where σ²_RP ≫ σ²_LR nearly
+    or more orders of magnitude below RP's; the whole-chain DELs (the thesis preset's and DEL_c), whose
+    density-gradient runs down the pathwise chain, explode like RP's and report it in their variance. TP: where σ²_RP ≫ σ²_LR nearly
     all weight went to LR."""
     outs = contained(base_updates(name, 100))
-    if name == "del_thesis":
+    if name in ("del_thesis", "del_cost"):
         v, v30 = median(outs, var_first_step), median(base_updates("rp", 30), var_first_step)
         assert v > 1e5 * v30, f"DEL: median σ²(step 1) = {v:.3g} vs RP's {v30:.3g} at T = 30"
     else:

@@ -45,7 +45,8 @@ REFERENCE_GFLOPS = 40.0
 #: "Speed": each method's ratio to RP divided by TP's, 1.17); the fixed-seed variants evaluate RP's
 #: or GR's objective with their quasi-Newton search
 METHOD_RATIO = {"tp": 1.0, "tp+sn": 1.0, "rp": 0.855, "rp_fs": 0.855, "gr": 0.863, "gr_fs": 0.863, "lr": 0.889,
-                "tp-sf": 0.458, "gtp": 1.026, "gtp+sn": 1.026, "glr": 1.085, "del": 1.436}
+                "tp-sf": 0.458, "gtp": 1.026, "gtp+sn": 1.026, "glr": 1.085, "del": 1.436,
+                "del-cost": 1.436}  # del-cost: the thesis preset's DEL's pathwise sweep with other weights, not timed
 
 #: PILCO's value-and-gradient evaluations per line search (median over the committed cart-pole files:
 #: 211 evaluations in 151 line searches); a budget given in evaluations is spent as given

@@ -9,13 +9,14 @@ built by :func:`plain_costs`, :func:`shaped_costs` and :func:`density_estimation
   ``Σ̂ = E[x xᵀ] − μ̂ μ̂ᵀ`` (1/P) and ``Ē = E_{N(μ̂, Σ̂)}[c]`` in closed form, the LR cost
   ``g_i = ∂Ē/∂μ̂ · m_i + ⟨∂Ē/∂Σ̂, v_i − 2 m_i μ̂ᵀ⟩`` (``m_i = x_i − μ̂``, ``v_i = x_i x_iᵀ − E[x xᵀ]``)
   and the RP cost gradient ``P·dĒ/dx_i = ∂Ē/∂μ̂ + 2 Sym(∂Ē/∂Σ̂) m_i``;
-* DEL down the whole pathwise chain (the thesis' reading of §3.3.1, :func:`thesis_estimator`
+* DEL down the whole pathwise chain (the thesis preset's reading of §3.3.1, :func:`thesis_estimator`
   ``("del")``): with ``q = N(μ̂, Σ̂)`` (unbiased covariance) fitted pathwise,
   ``S = (1/P) Σ_j (G_j − b) log q(x_j)`` with the samples ``x_j`` held fixed, the cost
   gradient is ``P·∂S/∂x_i`` through the fit only, carried to θ through every earlier step. As the
   returns ``G`` already hold the later costs, a cost at step s is counted once for every step
-  t ≤ s whose fit it moves (docs/estimator-bias.md). The library's DEL takes the same ``P·∂S/∂x_i``
-  one step to θ instead (:func:`pipps.propagation.parts.density_lr`).
+  t ≤ s whose fit it moves (docs/estimator-bias.md). Weighted by each step's own cost ``c_j``
+  instead of ``G_j`` (``weights="cost"``), each cost is counted once. The library's DEL takes the
+  ``G``-weighted ``P·∂S/∂x_i`` one step to θ instead (:func:`pipps.propagation.parts.density_lr`).
 
 Per-particle returns are summed without the 1/P; the sweep divides at the end, so that a
 particle's gradient is ``∂G_i/∂θ`` and the estimate is their mean.
@@ -34,6 +35,9 @@ from pipps.propagation.pieces import MeanReturn, PreviousBaseline, Stateless, St
 from pipps.propagation.strategy import strategy
 
 DEL_BASELINES = ("previous", "none")
+#: what weighs each particle's fitted score in the whole-chain DEL: its return-to-go ``G_{i,t}`` (the
+#: thesis preset) or the step's own cost ``c_{i,t}``
+DEL_WEIGHTS = ("returns", "cost")
 
 
 def plain_terms(cost, x: jax.Array, c: jax.Array, *, gradient: bool):
@@ -122,16 +126,27 @@ class ShapedCosts(Stateless):
 
 @strategy
 class DensityEstimationCosts(PreviousBaseline):
-    """DEL down the whole pathwise chain (the thesis' reading of §3.3.1): the particles' own costs
-    for the returns and the surrogate's ``P·∂S/∂x_i`` instead of ``∇c(x_i)``.
+    """DEL down the whole pathwise chain: the particles' own costs for the returns and the
+    surrogate's ``P·∂S/∂x_i`` instead of ``∇c(x_i)``.
 
-    ``baseline``: ``b_t`` of the surrogate, "previous" (the previous iteration's mean return, the
-    state) or "none".
+    ``baseline``: ``b_t`` of the surrogate, "previous" (the previous iteration's mean weight, the
+    state) or "none". ``weights``: what weighs particle i's fitted score at step t, its return-to-go
+    ``G_{i,t}`` ("returns", the thesis preset's reading of §3.3.1: a cost at step s is then counted
+    once for every step t ≤ s whose fit it moves) or the step's own cost ``c_{i,t}`` ("cost": the LR
+    identity ``∇E[c_t] = E[c_t ∇_θ log p_t(x_t)]`` of each step's marginal, counting each cost once).
     """
 
     baseline: str = "previous"
+    weights: str = "returns"
 
     feeds_likelihood_ratio = False
+
+    def init(self, context) -> MeanReturn | tuple:
+        state = super().init(context)
+        if self.weights == "cost" and self.baseline == "previous":
+            g = state.mean_return  # the mean return-to-go per step; a step's mean cost is its difference
+            state = MeanReturn(g - jnp.concatenate([g[1:], jnp.zeros_like(g[:1])]))
+        return state
 
     def returns(self, cost, x, c):
         del cost, x
@@ -139,9 +154,9 @@ class DensityEstimationCosts(PreviousBaseline):
 
     def step(self, state, cost, x, c, returns_next, *, gradient: bool) -> tuple[MeanReturn | tuple, StepCosts]:
         del cost
-        returns = returns_next + c
-        b, next_state = self.previous_baseline(state, returns)
-        dc = del_gradient(x, returns, b) if gradient else None
+        weights = c if self.weights == "cost" else returns_next + c
+        b, next_state = self.previous_baseline(state, weights)
+        dc = del_gradient(x, weights, b) if gradient else None
         return next_state, StepCosts(c, dc, jnp.mean(c))
 
 
@@ -155,9 +170,11 @@ def shaped_costs() -> ShapedCosts:
     return ShapedCosts()
 
 
-def density_estimation_costs(baseline: str = "previous") -> DensityEstimationCosts:
-    """Cost terms of the thesis' DEL (the whole pathwise chain) with the surrogate's baseline,
-    "previous" or "none"."""
+def density_estimation_costs(baseline: str = "previous", weights: str = "returns") -> DensityEstimationCosts:
+    """Cost terms of the whole-chain DEL with the surrogate's baseline, "previous" or "none", and its
+    weights, "returns" (returns-to-go: the thesis preset's DEL) or "cost" (each step's own cost)."""
     if baseline not in DEL_BASELINES:
         raise ValueError(f"DEL's baseline must be one of {DEL_BASELINES}, got {baseline!r}")
-    return DensityEstimationCosts(baseline)
+    if weights not in DEL_WEIGHTS:
+        raise ValueError(f"DEL's weights must be one of {DEL_WEIGHTS}, got {weights!r}")
+    return DensityEstimationCosts(baseline, weights)

@@ -182,6 +182,10 @@ ESTIMATORS: dict[str, NamedEstimator] = {e.name: e for e in (
                    "taken to θ through each step's own controls",
                    compose(plain_costs(), density_lr()), compose(density_estimation_costs(), pathwise()),
                    "the fit's derivative down the whole pathwise chain (counts a cost once per earlier step)"),
+    NamedEstimator("del_cost", "DEL_c", (219, 219, 141),
+                   "DEL with each step's own cost as the weight, the fit's derivative down the whole pathwise chain "
+                   "(the LR identity of each step's marginal; a third reading of thesis §3.3.1)",
+                   compose(density_estimation_costs(weights="cost"), pathwise())),
 )}
 
 NAMED = tuple(ESTIMATORS)
@@ -212,7 +216,7 @@ def _reweighted(name: str, parts: tuple, weighting: str) -> tuple:
 
 def _rebaselined(name: str, costs, parts: tuple, baseline: str):
     if isinstance(costs, DensityEstimationCosts):
-        return density_estimation_costs(baseline), parts
+        return density_estimation_costs(baseline, costs.weights), parts
     if any(isinstance(p, DensityLR) for p in parts):
         return costs, tuple(density_lr(baseline) if isinstance(p, DensityLR) else p for p in parts)
     if any(isinstance(p, BiwLR) for p in parts):
