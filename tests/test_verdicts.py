@@ -163,6 +163,14 @@ def test_the_calibration_script_lists_the_policies_the_two_rules_disagree_on(cap
     assert "k = 1, TP, at 3.2 : 1000: the verdict differs from the criterion's on seed(s) 4 (passes)" in out
 
 
+def test_the_calibration_script_refuses_files_of_two_costs():
+    """Its cells are keyed by k and method: files of two costs would pool into one cell."""
+    script = _calibration_script()
+    angle, tip = (RESULTS / f"cartpole_swingup_{c}_k1_tp_thesis_s4.h5" for c in ("angle", "tip"))
+    with pytest.raises(SystemExit, match="one task and cost at a time"):
+        script.main([str(angle), str(tip)])
+
+
 def test_the_calibration_script_re_simulates_final_policies_with_fresh_rollouts(capsys):
     """``--fresh N``: per file, the stored and the fresh return, fraction below 15 and fraction balanced,
     with both per-seed verdicts; per cell, the per-trial rates from the stored and the fresh rollouts.
