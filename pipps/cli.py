@@ -960,10 +960,10 @@ def _table_figure(figure, paths, args, outs):
         else:
             groups = split_by(summaries, args.by)
             filled = []
-            for t in tables:
-                g = grouped(t, args.by, [value for value, _ in groups])
-                rows = {c.row: rs for (value, rs) in groups for c in grouped(t, args.by, [value]).cells}
-                filled.append((g, [(c, cell_summaries(g, c, rows[c.row], args.preset, custom)) for c in g.cells]))
+            for t in tables:  # each value's cells, filled from that value's results alone
+                filled.append((grouped(t, args.by, [value for value, _ in groups]),
+                               [(c, cell_summaries(t, c, rs, args.preset, custom))
+                                for value, rs in groups for c in grouped(t, args.by, [value]).cells]))
         filled = [(t, cells) for t, cells in filled if any(rs for _, rs in cells)]
         if len(filled) > 1:
             raise UsageError(f"the results fill cells of tables {', '.join(t.name for t, _ in filled)}: pick one with --table")

@@ -742,9 +742,8 @@ def test_cli_table_reads_results_and_skips_corrupt(tiny_result, tmp_path, capsys
     assert "cartpole_swingup TP k=1 seed 0" not in capsys.readouterr().out  # --table 4.4's curves: the unicycle's only
 
 
-def test_cli_table_by_a_setting_prints_each_value_and_names_a_bad_setting(tiny_result, tmp_path, capsys):
-    from pipps.cli import main
-
+def _two_estimator_choices(tiny_result, tmp_path):
+    """A folder of two copies of the tiny result as a thesis-preset TP run, one per estimator_choices."""
     _, path = tiny_result
     folder = tmp_path / "res"
     folder.mkdir()
@@ -753,6 +752,13 @@ def test_cli_table_by_a_setting_prints_each_value_and_names_a_bad_setting(tiny_r
     for name, choices in (("lib.h5", "library"), ("thesis.h5", "thesis")):
         result.config = cfg.replace(estimator_choices=choices)
         write_result(folder / name, result)
+    return folder
+
+
+def test_cli_table_by_a_setting_prints_each_value_and_names_a_bad_setting(tiny_result, tmp_path, capsys):
+    from pipps.cli import main
+
+    folder = _two_estimator_choices(tiny_result, tmp_path)
     # --custom: the tiny result departs from the preset in more than estimator_choices
     assert main(["table", str(folder), "--table", "4.1", "--by", "estimator_choices", "--per-seed", "--custom"]) == 0
     out = capsys.readouterr().out
@@ -768,14 +774,7 @@ def test_cli_plot_by_a_setting_draws_each_value_apart(tiny_result, tmp_path, cap
     """--by keeps two readings of one method apart in a figure, as pipps table --by does in a table."""
     from pipps.cli import main
 
-    _, path = tiny_result
-    folder = tmp_path / "res"
-    folder.mkdir()
-    cfg = resolve_config("thesis", "cartpole_swingup", method="tp", k=1.0, num_learned=1)
-    result = read_result(path)
-    for name, choices in (("lib.h5", "library"), ("thesis.h5", "thesis")):
-        result.config = cfg.replace(estimator_choices=choices)
-        write_result(folder / name, result)
+    folder = _two_estimator_choices(tiny_result, tmp_path)
     for figure in ("curves", "cells"):
         svg = tmp_path / f"{figure}.svg"
         argv = ["plot", str(folder), "--figure", figure, "--table", "4.1", "--custom", "--out", str(tmp_path / "x.rrd"),
