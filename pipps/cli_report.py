@@ -192,6 +192,8 @@ def kept_report(rows, command: str) -> list[str]:
         elif found.kind == "unfinished" and found.trials:
             unfinished += 1
             lines.append(f"  {found.describe(cfg.num_trials)}: {path}")
+        elif found.kind == "unfinished":  # stopped in its first trial: nothing to keep, the rerun starts it afresh
+            lines.append(f"  no trial finished (the same command starts it again): {path}")
         elif found.kind != "missing":
             lines.append(f"  {found.kind}: {path} ({found.detail})")
     head = (f"kept: {sum(1 for line in lines if 'complete:' in line)} complete file(s), {unfinished} with finished "

@@ -132,10 +132,12 @@ def _on_sigint(signum, frame):
     written as interrupted), once; later ones of either kind are ignored so that the file is written
     whole (the sweep kills a worker that is still running after its grace period)."""
     global _stopping
+    # Later signals find this handler still installed and return at once. (Setting SIG_IGN instead
+    # would make CPython print a "Signal 15 ignored due to race condition" traceback when a SIGTERM
+    # to the group and the sweep's SIGINT arrive together.)
+    if _stopping:
+        return
     _stopping = True
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    if _takes_sigterm:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if _busy:
         raise KeyboardInterrupt
 
