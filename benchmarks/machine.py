@@ -39,7 +39,8 @@ def gemm_rate(shape: tuple[int, ...], reps: int = 9, median: bool = True) -> tup
         c.block_until_ready()
         seconds = (time.perf_counter() - t) / reps
     n = shape[-1]
-    return 2 * int(np.prod(shape[:-1])) * n / seconds / 1e9, seconds
+    flops = 2 * int(np.prod(shape)) * n  # each of the B·n·n entries of the product: n multiply-adds
+    return flops / seconds / 1e9, seconds
 
 
 def gemm_gflops(n: int = 512, reps: int = 9) -> float:
