@@ -31,7 +31,7 @@ from machine import gemm_gflops  # benchmarks/machine.py
 from pipps.gp import GPConfig, GPHyper, full_posterior, make_data
 from pipps.particles.forward import RolloutConfig, particle_rollout, reparameterized_objective, sample_noise
 from pipps.policies import init_rbf_policy
-from pipps.propagation.estimators import estimator
+from pipps.propagation.estimators import estimator, thesis_estimator
 from pipps.propagation.estimate import estimate, init_estimator_state
 from pipps.tasks.presets import make_task
 
@@ -52,8 +52,8 @@ def cartpole_model(n: int, seed: int = 0):
 
 
 VARIANTS = {
-    # label: (estimator name — or (name, estimator settings) —, None for autodiff or "forward" for
-    # the rollout alone; RolloutConfig overrides)
+    # label: (estimator name — or (name, estimator settings), or ("thesis", name) for the thesis
+    # preset's choices —, None for autodiff or "forward" for the rollout alone; RolloutConfig overrides)
     "forward only (rollout + model Jacobians)": ("forward", {}),
     "autodiff (jax.value_and_grad)": (None, {}),
     "rp": ("rp", {}),
@@ -68,7 +68,10 @@ VARIANTS = {
     "tpx previous": (("tpx", {"k_lr": "previous"}), {}),
     "gtp": ("gtp", {}),
     "glr": ("glr", {}),
-    "del": ("del", {}),
+    "tp (thesis preset: k_LR and baseline from the batch)": (("thesis", "tp"), {}),
+    "del (thesis preset: the fit's derivative down the whole chain, returns-to-go)": (("thesis", "del"), {}),
+    "del (library: one step to θ)": ("del", {}),
+    "del_cost (DEL_c: each step's own cost, down the whole chain)": ("del_cost", {}),
 }
 
 
@@ -84,7 +87,12 @@ def make_call(task, model, policy, name, overrides, P, T):
             return jax.value_and_grad(lambda p: reparameterized_objective(task, p, model, sample_noise(key, task, cfg), cfg))(pol)
 
         return jax.jit(f)
-    est = estimator(name) if isinstance(name, str) else estimator(name[0], **name[1])
+    if isinstance(name, str):
+        est = estimator(name)
+    elif name[0] == "thesis":
+        est = thesis_estimator(name[1])
+    else:
+        est = estimator(name[0], **name[1])
     state = init_estimator_state(jax.random.PRNGKey(123), policy, model, problem=task, config=cfg, estimator=est)
 
     def g(key, pol):

@@ -22,9 +22,9 @@ The model prices each trial of an experiment (docs/performance.md, "Estimating a
 The coefficients are seconds on one core at :data:`REFERENCE_GFLOPS`, fitted to the per-trial
 ``timings`` of committed result files by ``experiments/cost_model_fit.py`` (which prints them and
 their error on held-out files); :func:`gemm_gflops` measures this machine's float64 GEMM rate,
-and :func:`estimate` scales the reference seconds by the ratio of the two rates. Only TP and PILCO
-have CPU timings in the committed files; the other particle methods are TP's curve times their
-measured ratio to TP at N = 300 (docs/estimators.md, "Speed").
+and :func:`estimate` scales the reference seconds by the ratio of the two rates. Every particle
+method is priced as TP's curve times its measured ratio to TP at N = 300 (docs/estimators.md,
+"Speed"); the files of the other methods enter the fit through those ratios.
 """
 
 from __future__ import annotations
@@ -41,12 +41,12 @@ from pipps.experiments.config import ExperimentConfig
 #: measured (docs/performance.md)
 REFERENCE_GFLOPS = 40.0
 
-#: seconds per value-and-gradient relative to TP, at P = 300, T = 30, N = 300 (docs/estimators.md,
-#: "Speed": each method's ratio to RP divided by TP's, 1.17); the fixed-seed variants evaluate RP's
-#: or GR's objective with their quasi-Newton search
-METHOD_RATIO = {"tp": 1.0, "tp+sn": 1.0, "rp": 0.855, "rp_fs": 0.855, "gr": 0.863, "gr_fs": 0.863, "lr": 0.889,
-                "tp-sf": 0.458, "gtp": 1.026, "gtp+sn": 1.026, "glr": 1.085, "del": 1.436,
-                "del-cost": 1.436}  # del-cost: the thesis preset's DEL's pathwise sweep with other weights, not timed
+#: seconds per value-and-gradient relative to the thesis preset's TP, at P = 300, T = 30, N = 300, on
+#: one pinned core (docs/estimators.md, "Speed", 2026-11-27: each method's seconds over TP's 0.2305 s);
+#: the fixed-seed variants evaluate RP's or GR's objective with their quasi-Newton search; DEL's three
+#: readings (the thesis preset's, the library's, DEL_c) measured within 1 % of each other
+METHOD_RATIO = {"tp": 1.0, "tp+sn": 1.0, "rp": 0.893, "rp_fs": 0.893, "gr": 0.897, "gr_fs": 0.897, "lr": 0.924,
+                "tp-sf": 0.306, "gtp": 1.005, "gtp+sn": 1.005, "glr": 0.938, "del": 0.900, "del-cost": 0.894}
 
 #: PILCO's value-and-gradient evaluations per line search (median over the committed cart-pole files:
 #: 211 evaluations in 151 line searches); a budget given in evaluations is spent as given
@@ -77,10 +77,10 @@ class Coefficients:
 #: fitted by ``experiments/cost_model_fit.py`` on the even seeds of the committed CPU result files
 #: (docs/performance.md has the run and the held-out error)
 COEFFICIENTS = Coefficients(
-    variance=3.98e-11, kernel=1.26e-08, particle=6.01e-06, search=9.57e-20,
-    pilco_mm=7.15e-09, pilco_kernel=2.16e-41, pilco_step=4.12e-21, pilco_search=6.68,
-    gp_full=1.79e-08, gp_fitc=1.34e-09, gp_fixed=0.29,
-    learned_rest=0.0155, random_trial=0.697,
+    variance=3.39e-11, kernel=1.41e-08, particle=6.98e-06, search=9.57e-20,
+    pilco_mm=7.73e-09, pilco_kernel=2.28e-41, pilco_step=4.12e-21, pilco_search=7.73,
+    gp_full=1.71e-08, gp_fitc=1.45e-09, gp_fixed=0.526,
+    learned_rest=0.0183, random_trial=0.835,
 )
 
 
