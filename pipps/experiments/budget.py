@@ -23,8 +23,9 @@ The coefficients are seconds on one core at :data:`REFERENCE_GFLOPS`, fitted to 
 ``timings`` of committed result files by ``experiments/cost_model_fit.py`` (which prints them and
 their error on held-out files); :func:`gemm_gflops` measures this machine's float64 GEMM rate,
 and :func:`estimate` scales the reference seconds by the ratio of the two rates. Every particle
-method is priced as TP's curve times its measured ratio to TP at N = 300 (docs/estimators.md,
-"Speed"); the files of the other methods enter the fit through those ratios.
+method but TP−σ_f is priced as TP's curve times its measured ratio to TP at N = 300
+(docs/estimators.md, "Speed"), and its files enter the fit through that ratio; TP−σ_f is priced as
+TP without the variance term.
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ REFERENCE_GFLOPS = 40.0
 #: the fixed-seed variants evaluate RP's or GR's objective with their quasi-Newton search; DEL's three
 #: readings (the thesis preset's, the library's, DEL_c) measured within 1 % of each other
 METHOD_RATIO = {"tp": 1.0, "tp+sn": 1.0, "rp": 0.893, "rp_fs": 0.893, "gr": 0.897, "gr_fs": 0.897, "lr": 0.924,
-                "tp-sf": 0.306, "gtp": 1.005, "gtp+sn": 1.005, "glr": 0.938, "del": 0.900, "del-cost": 0.894}
+                "gtp": 1.005, "gtp+sn": 1.005, "glr": 0.938, "del": 0.900, "del-cost": 0.894}
 
 #: PILCO's value-and-gradient evaluations per line search (median over the committed cart-pole files:
 #: 211 evaluations in 151 line searches); a budget given in evaluations is spent as given
@@ -157,7 +158,7 @@ def evaluation_seconds(shape: Shape, size: int, c: Coefficients = COEFFICIENTS) 
     if shape.pilco:
         return T * (c.pilco_mm * E * E * M * M + c.pilco_kernel * E * M + c.pilco_step)
     variance = 0.0 if shape.method == "tp-sf" else c.variance * E * M * M
-    ratio = METHOD_RATIO.get(shape.method, 1.0) if shape.method != "tp-sf" else 1.0
+    ratio = METHOD_RATIO.get(shape.method, 1.0)  # TP−σ_f: 1.0, TP without the variance term
     return ratio * T * shape.particles * (variance + c.kernel * E * M + c.particle)
 
 
