@@ -289,6 +289,20 @@ def test_particles_beyond_memory_are_refused_before_any_work(fake_loop, tmp_path
     assert lr > 5 * rp
 
 
+def test_del_with_no_more_particles_than_state_dimensions_is_refused_before_any_work(fake_loop, tmp_path, capsys,
+                                                                                      monkeypatch):
+    calls = []
+    monkeypatch.setattr(loop, "run_experiment", lambda *a, **k: calls.append(1))
+    code, o = cli(capsys, "run", "--method", "del", "--particles", 4, "--out", tmp_path / "x.h5")
+    assert code == 2 and "--particles 4: del fits a Gaussian to the particles in the model's 4 state dimensions" in o.err
+    assert "(at least 5)" in o.err and not calls and not (tmp_path / "x.h5").exists()
+    code, o = cli(capsys, "sweep", "--table", "del", "--methods", "del-cost", "--seeds", "1",
+                  "--set", "num_particles=3", "--out", tmp_path / "sw")
+    assert code == 2 and "--set num_particles 3: del_cost fits a Gaussian" in o.err and not calls
+    preflight.check_density_fit(("del",), 5, 4)  # P = D + 1 is enough
+    preflight.check_density_fit(("tp", "rp"), 2, 4)  # the other estimators fit nothing
+
+
 def test_seeds_are_bounded_by_what_every_draw_can_start_from(tmp_path, capsys):
     from pipps.demo import random_policy_rollouts
     from pipps.experiments.config import MAX_SEED

@@ -148,6 +148,17 @@ def test_del_gradient_equals_autodiff_of_its_surrogate(setup, choices):
     assert np.linalg.norm(one_step - chain) > 0.1 * np.linalg.norm(ref)  # the two readings differ here
 
 
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_del_refuses_a_degenerate_fit_in_either_precision(dtype):
+    """P ≤ D particles have a covariance of rank P − 1 < D: float64's jitter turned it into a finite
+    number with no meaning and float32's Cholesky into NaN; both now raise, naming P and D."""
+    x = jax.random.normal(jax.random.PRNGKey(0), (4, 4)).astype(dtype)
+    with pytest.raises(ValueError, match=r"P = 4 particles of dimension D = 4 \(need P > D\)"):
+        cost_terms.del_gradient(x, jnp.arange(4.0, dtype=dtype), jnp.zeros((), dtype))
+    five = jnp.concatenate([x, x[:1] + 1.0])
+    assert jnp.all(jnp.isfinite(cost_terms.del_gradient(five, jnp.arange(5.0, dtype=dtype), jnp.zeros((), dtype))))
+
+
 def test_whole_chain_del_weighted_by_each_steps_cost_equals_autodiff_of_its_surrogate(setup):
     """The third reading: the whole chain, each particle's fitted score weighted by its own cost
     c_{i,t} instead of its return-to-go."""

@@ -220,9 +220,26 @@ def check_experiment(cfg: ExperimentConfig, *, seeds: int = 1, processes: int = 
         check_moment_matching(cfg, problem)
     except ValueError as err:
         raise ConfigError(f"method: {err}") from None
+    if not cfg.is_pilco:
+        check_density_fit((cfg.method_spec.estimator,), cfg.num_particles, problem.model_dim, option=particles)
     horizon = int(cfg.horizon or problem.horizon)
     check_noise(cfg.task, cfg.preset, cfg.k, cfg.num_trials * horizon, option=k)
     return check_memory(cfg, seeds=seeds, processes=processes, particles=particles)
+
+
+#: the estimators that fit a Gaussian density to the particles at every step (DEL's readings)
+DENSITY_FIT_ESTIMATORS = ("del", "del_cost")
+
+
+def check_density_fit(estimators, particles: int, state_dim: int, option: str = "--particles") -> None:
+    """DEL fits a Gaussian to the P particles at each step: its unbiased covariance has rank at most
+    P − 1, so P ≤ D (the model state's dimension) makes the fitted density degenerate. Raises
+    :class:`ConfigError` naming ``option`` before anything runs, instead of at the first policy search."""
+    names = sorted({str(e).split(":")[0] for e in estimators if isinstance(e, str)} & set(DENSITY_FIT_ESTIMATORS))
+    if names and particles <= state_dim:
+        raise ConfigError(f"{option} {particles}: {', '.join(names)} fits a Gaussian to the particles in the "
+                          f"model's {state_dim} state dimensions and needs more particles than that "
+                          f"(at least {state_dim + 1})")
 
 
 def check_study(cfg: ExperimentConfig, size: int, particles: int, estimators, *, option: str = "--particles",
@@ -233,6 +250,7 @@ def check_study(cfg: ExperimentConfig, size: int, particles: int, estimators, *,
     from pipps.experiments.state import make_experiment_task
 
     problem = make_experiment_task(cfg).problem
+    check_density_fit(estimators, particles, problem.model_dim, option=option)
     T = int(cfg.horizon or problem.horizon)
     features = (cfg.num_basis if cfg.policy != "linear" else 1) * problem.policy_input_dim
     kinds = {str(e).split(":")[0] for e in estimators}

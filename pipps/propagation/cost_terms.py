@@ -80,8 +80,17 @@ def gaussian_logpdf(x: jax.Array, mean: jax.Array, cov: jax.Array) -> jax.Array:
 
 def del_gradient(x: jax.Array, returns: jax.Array, baseline: jax.Array, jitter: float = 1e-12) -> jax.Array:
     """DEL's ``P·∂S/∂x_i`` (the module docstring): the fitted density's score at the fixed samples,
-    differentiated through the fit ``μ̂, Σ̂`` with respect to each particle."""
+    differentiated through the fit ``μ̂, Σ̂`` with respect to each particle.
+
+    Raises:
+      ValueError: ``P ≤ D``: the unbiased covariance of P particles has rank at most P − 1, so the
+        fitted density of D-dimensional particles is degenerate and its score undefined (float64's
+        jitter hides it as a meaningless finite number, float32's Cholesky returns NaN).
+    """
     P, D = x.shape
+    if P <= D:
+        raise ValueError(f"DEL fits a Gaussian to the particles and needs more particles than state dimensions: "
+                         f"got P = {P} particles of dimension D = {D} (need P > D)")
     advantage = jax.lax.stop_gradient(returns - baseline)
     samples = jax.lax.stop_gradient(x)
 
