@@ -8,8 +8,13 @@ training, policy search, whole trial) and its GP's size. The script fits the mod
 to the files of even seeds (least squares on log seconds, so a trial that shared its core with other
 work weighs by its ratio, not its seconds), prints them as ``budget.Coefficients(...)``, and then
 predicts every odd-seed file's experiment from its configuration alone — as ``pipps run
---dry-run`` does — against the file's measured wall time, per method and task. The reference rate
-is :data:`pipps.experiments.budget.REFERENCE_GFLOPS`: the files' own rates were not recorded.
+--dry-run`` does — against the file's measured wall time, per method and task.
+
+The coefficients are seconds at :data:`pipps.experiments.budget.REFERENCE_GFLOPS`. A trial that
+stores its core's GEMM rate (``timings.extra["gemm_gflops"]``, measured after each learned trial
+since 2026-11-28) has its seconds scaled to that reference, and a held-out file is predicted at its
+trials' median rate, as ``--dry-run`` predicts at the rate it measures; older files hold no rate and
+count as if measured at the reference.
 """
 
 from __future__ import annotations
@@ -48,6 +53,19 @@ def learned_rows(result):
     return rows
 
 
+def at_reference(tm) -> float:
+    """The factor that takes a trial's measured seconds to the reference rate: its stored GEMM rate
+    over the reference (1 where the file holds none)."""
+    rate = tm.extra.get("gemm_gflops")
+    return float(rate) / budget.REFERENCE_GFLOPS if rate else 1.0
+
+
+def file_rate(result) -> float:
+    """The median GEMM rate a file's learned trials stored (the reference where none did)."""
+    rates = [float(t.timings.extra["gemm_gflops"]) for t in result.trials if t.timings.extra.get("gemm_gflops")]
+    return float(np.median(rates)) if rates else budget.REFERENCE_GFLOPS
+
+
 def usable(path) -> bool:
     r = read_result(path, verify=False)
     with_batch = any(t.timings.batched_seeds for t in r.trials)
@@ -65,7 +83,7 @@ def fit(files) -> budget.Coefficients:
     pilco = [(s, t, tm) for s, t, tm in rows if s.pilco]
 
     def log_fit(model, data, target, start):
-        y = np.log(np.array([target(tm) for *_, tm in data]))
+        y = np.log(np.array([target(tm) * at_reference(tm) for *_, tm in data]))
 
         def residual(theta):
             p = np.exp(theta)
@@ -92,8 +110,10 @@ def fit(files) -> budget.Coefficients:
     pp = log_fit(search_pilco, pilco, lambda tm: tm.optimize,
                 [c0.pilco_mm, c0.pilco_kernel, c0.pilco_step, c0.pilco_search])
     pg = log_fit(gp, rows, lambda tm: tm.gp, [c0.gp_full, c0.gp_fitc, c0.gp_fixed])
-    rest = [tm.total - tm.gp - tm.optimize for *_, tm in rows if tm.total is not None]
-    random = [t.timings.total for r in results for t in r.trials if t.kind == "random" and t.timings.total]
+    rest = [(tm.total - tm.gp - tm.optimize) * at_reference(tm) for *_, tm in rows if tm.total is not None]
+    # a random trial stores no rate: its file's learned trials' median stands for it
+    random = [t.timings.total * file_rate(r) / budget.REFERENCE_GFLOPS
+              for r in results for t in r.trials if t.kind == "random" and t.timings.total]
     return budget.Coefficients(
         variance=float(ps[0]), kernel=float(ps[1]), particle=float(ps[2]), search=float(ps[3]),
         pilco_mm=float(pp[0]), pilco_kernel=float(pp[1]), pilco_step=float(pp[2]), pilco_search=float(pp[3]),
@@ -109,7 +129,7 @@ def held_out(files, coefficients):
         r = read_result(p, verify=False)
         if status != "complete":
             continue
-        predicted = sum(c.total for c in budget.seconds(cfg, coefficients))
+        predicted = sum(c.total for c in budget.seconds(cfg, coefficients)) * budget.REFERENCE_GFLOPS / file_rate(r)
         groups.setdefault((cfg.task, cfg.method), []).append((predicted / r.wall_seconds, p, predicted,
                                                               r.wall_seconds))
     return groups

@@ -12,6 +12,7 @@ tests run the real loop on tiny budgets.
 
 from __future__ import annotations
 
+import importlib.util
 import io
 import os
 import re
@@ -19,6 +20,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 from pathlib import Path
 
 import h5py
@@ -30,7 +32,7 @@ from pipps.cli import main
 from pipps.cli_report import RunProgress, SweepProgress
 from pipps.experiments import budget, preflight
 from pipps.experiments.config import ConfigError, experiment_name, resolve_config
-from pipps.experiments.records import ExperimentResult
+from pipps.experiments.records import ExperimentResult, Timings
 from pipps.experiments.results import ResultError, check_result, read_result, verify_result, write_result
 from pipps.experiments.storage import OutputError, check_new_file, existing_result, is_experiment_result, publish
 
@@ -665,6 +667,20 @@ def test_the_model_predicts_a_committed_experiment_it_was_not_fitted_on():
         r = read_result(REPO / "results/thesis" / name, verify=False)
         predicted = sum(t.total for t in budget.seconds(r.config))
         assert 0.5 < predicted / r.wall_seconds < 2.0, (name, predicted, r.wall_seconds)
+
+
+def test_the_cost_fit_takes_each_trials_seconds_to_the_reference_rate_it_stored():
+    spec = importlib.util.spec_from_file_location("cost_model_fit", REPO / "experiments/cost_model_fit.py")
+    fit = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fit)
+    ref = budget.REFERENCE_GFLOPS
+    fast, old = Timings(optimize=10.0, extra={"gemm_gflops": 2 * ref}), Timings(optimize=10.0)
+    assert fit.at_reference(fast) == 2.0 and fit.at_reference(old) == 1.0  # 10 s at 2x the rate = 20 s at it
+    trial = lambda kind, tm: types.SimpleNamespace(kind=kind, timings=tm)  # noqa: E731
+    mixed = types.SimpleNamespace(trials=[trial("random", Timings(total=1.0)), trial("learned", fast),
+                                          trial("learned", Timings(extra={"gemm_gflops": ref}))])
+    assert fit.file_rate(mixed) == pytest.approx(1.5 * ref)  # the learned trials' median
+    assert fit.file_rate(types.SimpleNamespace(trials=[trial("learned", old)])) == ref
 
 
 def test_dry_runs_print_the_experiments_and_their_cost_and_touch_nothing(tmp_path, capsys, monkeypatch):

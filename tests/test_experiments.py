@@ -347,6 +347,9 @@ def test_result_file_schema_and_round_trip(tiny_result):
         assert learned["diagnostics/k_lr"].shape == (H,)
         assert learned["predicted/particles"].shape == (H + 1, 4, 4)
         assert set(learned["timings"].attrs) >= {"gp", "optimize", "trial", "evaluate", "total"}
+        # the core's GEMM rate after each learned trial, for the cost model (experiments/cost_model_fit.py)
+        assert 0.1 < learned["timings"].attrs["gemm_gflops"] < 1e4
+        assert "gemm_gflops" not in f["trials/000/timings"].attrs
     # the stored evaluation is what the policy does on the true system
     np.testing.assert_allclose(f_eval := back.trials[1].eval_return, np.mean(result.trials[1].eval_returns))
     assert math.isfinite(f_eval)

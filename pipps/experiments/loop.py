@@ -230,6 +230,18 @@ def run_seeds(
     return results
 
 
+def machine_rate() -> dict[str, float]:
+    """``{"gemm_gflops": …}``: this core's float64 GEMM rate (:func:`pipps.experiments.budget.gemm_gflops`,
+    ~0.05 s), measured after each learned trial outside its timed phases and stored in its
+    ``timings.extra``, so that the cost model can set each file's seconds against the machine (and
+    the load) that measured them. Empty off the CPU, where the probe's CPU time is not the device's."""
+    if jax.default_backend() != "cpu":
+        return {}
+    from pipps.experiments.budget import gemm_gflops
+
+    return {"gemm_gflops": gemm_gflops()}
+
+
 def _random_trial(i, cfgs, states, programs: Programs, gpc, progress) -> list[TrialResult]:
     """Trial ``i`` of every seed with random actions, evaluated with random actions."""
     del gpc, progress
@@ -269,11 +281,12 @@ def _learned_trial(i, cfgs, states, programs: Programs, gpc, progress) -> list[T
         evals = programs.evaluate(axis.stack([jax.random.split(keys[j].evaluate, cfg.eval_rollouts) for j in ok]),
                                   policies)
         t4 = time.perf_counter()
+    rate = machine_rate() if ok else {}
     out: list = [FloatingPointError(f"trial {i}: the optimised policy parameters are not finite")] * len(states)
     for n, j in enumerate(ok):
         (post, _, info), (model, ranks), o = fits[j], planned[j], optimized[j]
         trial = _trial_from(i, "learned", axis.take(trajs, n), axis.take(evals, n), o.policy,
-                            Timings(gp=t1 - t0, optimize=t2 - t1, trial=t3 - t2, evaluate=t4 - t3))
+                            Timings(gp=t1 - t0, optimize=t2 - t1, trial=t3 - t2, evaluate=t4 - t3, extra=dict(rate)))
         trial.gp = gp_record(post, info, capacity, model, ranks)
         trial.opt_trace, trial.diagnostics, trial.predicted = o.trace, o.diagnostics, o.predicted
         out[j] = trial
