@@ -179,7 +179,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     _particle_method("gtp+sn", "GTP+σ_n", (100, 100, 100), "gtp", "GTP with σ_n² × noise_boost_gtp",
                      noise_boost="noise_boost_gtp"),
     _particle_method("del", "DEL", (0, 0, 0), "del", "density-estimation LR"),
-    _particle_method("del-cost", "DEL_c", (219, 219, 141), "del_cost",
+    _particle_method("del-cost", "DEL_c", (0, 110, 110), "del_cost",
                      "density-estimation LR weighted by each step's own cost, down the whole pathwise chain"),
 )}
 
