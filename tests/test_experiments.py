@@ -347,8 +347,12 @@ def test_result_file_schema_and_round_trip(tiny_result):
         assert learned["diagnostics/k_lr"].shape == (H,)
         assert learned["predicted/particles"].shape == (H + 1, 4, 4)
         assert set(learned["timings"].attrs) >= {"gp", "optimize", "trial", "evaluate", "total"}
-        # the core's GEMM rate after each learned trial, for the cost model (experiments/cost_model_fit.py)
-        assert 0.1 < learned["timings"].attrs["gemm_gflops"] < 1e4
+        # the core's GEMM rate after each learned trial, for the cost model (experiments/cost_model_fit.py);
+        # on a GPU backend the probe's CPU time would not be the device's, and nothing is stored
+        if jax.default_backend() == "cpu":
+            assert 0.1 < learned["timings"].attrs["gemm_gflops"] < 1e4
+        else:
+            assert "gemm_gflops" not in learned["timings"].attrs
         assert "gemm_gflops" not in f["trials/000/timings"].attrs
     # the stored evaluation is what the policy does on the true system
     np.testing.assert_allclose(f_eval := back.trials[1].eval_return, np.mean(result.trials[1].eval_returns))
