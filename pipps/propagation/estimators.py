@@ -182,7 +182,7 @@ ESTIMATORS: dict[str, NamedEstimator] = {e.name: e for e in (
                    "taken to θ through each step's own controls",
                    compose(plain_costs(), density_lr()), compose(density_estimation_costs(), pathwise()),
                    "the fit's derivative down the whole pathwise chain (counts a cost once per earlier step)"),
-    NamedEstimator("del_cost", "DEL_c", (219, 219, 141),
+    NamedEstimator("del_cost", "DEL_c", (0, 110, 110),
                    "DEL with each step's own cost as the weight, the fit's derivative down the whole pathwise chain "
                    "(the LR identity of each step's marginal; a third reading of thesis §3.3.1)",
                    compose(density_estimation_costs(weights="cost"), pathwise())),
