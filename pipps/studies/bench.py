@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from pipps.propagation.estimate import estimate, init_estimator_state
-from pipps.studies.gradients import LABELS, _check_estimators, _direction, _estimator_program, estimator_setup
+from pipps.studies.gradients import LABELS, _check_estimators, _direction, estimator_program, estimator_setup
 from pipps.studies.snapshot import Snapshot
 
 
@@ -159,7 +159,7 @@ def bench(
     theta0 = np.asarray(snap.theta)
     points = [jnp.asarray(theta0 + delta * d) for delta in deltas]
     P_ref = particles[-1]
-    ref_prog = _estimator_program(snap, reference, P_ref, "library")
+    ref_prog = estimator_program(snap, reference, P_ref, "library")
     refs, ref_err = [], []
     for di, p in enumerate(points):
         g = _estimates(ref_prog, jax.random.fold_in(jax.random.PRNGKey(seed + 7), di), p, reference_repeats)
@@ -175,7 +175,7 @@ def bench(
         for P in particles:
             exact_g = {}
             for tol, variant in variants.items():
-                prog = _estimator_program(variant, name, P, "library")
+                prog = estimator_program(variant, name, P, "library")
                 seconds = _time(_timing_program(variant, name, P), points[0], repeats=time_repeats)
                 for di, p in enumerate(points):
                     key = jax.random.fold_in(jax.random.PRNGKey(seed + 13), 10_000 * ei + 10 * P + di)

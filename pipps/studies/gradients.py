@@ -65,7 +65,7 @@ def _check_positive(name: str, value: int, lowest: int = 1) -> None:
         raise ValueError(f"{name} must be >= {lowest}, got {value}")
 
 
-def _estimator_program(snap: Snapshot, name: str, P: int, choices: str):
+def estimator_program(snap: Snapshot, name: str, P: int, choices: str):
     """A jitted ``(key, θ) → (ĝ flat, per-step k_LR)`` for one estimator at P particles (cached on the snapshot)."""
     return snap.program(("estimator", name, P, choices), lambda: _build_estimator_program(snap, name, P, choices))
 
@@ -204,7 +204,7 @@ def landscape(
     dir_mm = np.array([float(np.asarray(g) @ d) for _, g in mm_vals])
     samples: dict[str, list[Samples]] = {}
     for ei, name in enumerate(names):
-        program = _estimator_program(snap, name, particles, choices)
+        program = estimator_program(snap, name, particles, choices)
         samples[name] = []
         for di, p in enumerate(points):
             key = jax.random.fold_in(jax.random.PRNGKey(seed + 1), 1000 * ei + di)
@@ -240,7 +240,7 @@ def variance_study(
     samples: dict[str, list[list[Samples]]] = {n: [[None] * len(particles) for _ in deltas] for n in names}
     for ei, name in enumerate(names):
         for pi, P in enumerate(particles):
-            program = _estimator_program(snap, name, int(P), choices)
+            program = estimator_program(snap, name, int(P), choices)
             for di, delta in enumerate(deltas):
                 key = jax.random.fold_in(jax.random.PRNGKey(seed + 2), 10_000 * ei + 100 * pi + di)
                 samples[name][di][pi] = _samples(program, key, jnp.asarray(theta + delta * d), d, repeats)
