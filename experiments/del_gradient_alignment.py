@@ -7,21 +7,23 @@ At the optimisation start of each ``--trial`` (the policy and GP model the run h
 :func:`pipps.studies.snapshot.load_snapshot`), each estimator makes ``--repeats`` independent
 estimates at ``--particles`` (the run's own P by default), each from a fresh estimator state as at
 an optimisation's first iteration. A reference gradient ``g_ref`` averages ``--reference-repeats``
-estimates of the library's TP (unbiased) at ``--reference-particles``. Per estimator the script
+estimates of the library's TP (nearly unbiased: its leave-one-out k_LR has an O(1/P) bias,
+docs/estimator-variance.md) at ``--reference-particles``. Per estimator the script
 prints:
 
 * ``cos(E ĝ, g_ref)`` and ``E ĝ·g_ref / ‖g_ref‖²`` (± its 95 % Monte Carlo half-width over the
   repeats): the direction and size of its mean, i.e. its bias as seen by the learner (1 and 1 for
   an unbiased estimator, up to the Monte Carlo error; with a small SNR the mean's direction is
   itself uncertain, and the projection's interval says by how much);
-* ``E cos(ĝ, g_ref)``: how well one estimate points, which is what the normalized momentum step
-  follows (it keeps a direction, not a size);
-* ``SNR = ‖E ĝ‖² / tr Cov ĝ``: signal against noise of one estimate;
+* ``E cos(ĝ, g_ref)``: how well one raw estimate points;
+* ``SNR = ‖E ĝ‖² / tr Cov ĝ``: signal against noise of one estimate, from the sample mean, so noise
+  alone gives about 1/repeats: a value at or below that says no signal is detectable;
 * ``max/median ‖ĝ‖``: how heavy the tail of the estimates' sizes is (a chain that explodes now and
-  then makes a few estimates orders of magnitude larger than the rest, and those set a momentum
-  step's direction for many iterations).
+  then makes a few estimates orders of magnitude larger than the rest).
 
-The reference's own quality is printed beside it: the cosine between the means of its two halves.
+The reference's own quality is printed beside it: the cosine between the means of its two halves
+(a weak check where estimates are heavy-tailed: rare large ones that the reference's draws miss
+would not show).
 Estimators: the thesis preset's DEL (returns-to-go, the fit's derivative down the whole chain), the
 library's DEL (one step to θ), DEL_c (own cost, whole chain), and TP both ways.
 """
