@@ -540,14 +540,17 @@ def test_a_pool_worker_given_sigterm_and_sigint_together_is_interrupted_once_and
     """A signal to the sweep's process group and the sweep's own SIGINT reach a worker together:
     one interrupt, and no "ignored due to race condition" traceback on its stderr."""
     code = """if True:
-        import os, signal
+        import signal, threading
         from pipps.experiments import sweep
         sweep._start_worker(1, None, True)
         sweep._busy = True
         both = {signal.SIGINT, signal.SIGTERM}
         signal.pthread_sigmask(signal.SIG_BLOCK, both)
-        os.kill(os.getpid(), signal.SIGTERM)
-        os.kill(os.getpid(), signal.SIGINT)
+        # sent to this thread, not the process: a process-directed signal may go to another thread
+        # (the imports start some) that has it unblocked, and run the handler before the try below
+        me = threading.get_ident()
+        signal.pthread_kill(me, signal.SIGTERM)
+        signal.pthread_kill(me, signal.SIGINT)
         try:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, both)  # both pending: delivered at once
             for _ in range(1000):
