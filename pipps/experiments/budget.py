@@ -31,6 +31,7 @@ TP without the variance term.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from typing import NamedTuple
@@ -194,6 +195,13 @@ def cache_is_cold() -> bool:
 # -- this machine ----------------------------------------------------------------------------------
 
 
+@functools.cache
+def _square():
+    import jax
+
+    return jax.jit(lambda x: x @ x)
+
+
 def gemm_gflops(n: int = 512, reps: int = 7) -> float:
     """This machine's float64 GEMM rate on one core (Gflop/s): the median over ``reps`` products of
     two n×n matrices, each timed by the CPU time the process spent on it (so the rate is one
@@ -204,7 +212,7 @@ def gemm_gflops(n: int = 512, reps: int = 7) -> float:
 
     with jax.enable_x64(True):
         a = jnp.asarray(np.random.default_rng(0).standard_normal((n, n)), dtype=jnp.float64)
-        f = jax.jit(lambda x: x @ x)
+        f = _square()  # compiled once per process and size: the loop probes after every learned trial
         f(a).block_until_ready()
         times = []
         for _ in range(reps):

@@ -232,7 +232,7 @@ def run_seeds(
 
 def machine_rate() -> dict[str, float]:
     """``{"gemm_gflops": …}``: this core's float64 GEMM rate (:func:`pipps.experiments.budget.gemm_gflops`,
-    ~0.05 s), measured after each learned trial outside its timed phases and stored in its
+    ~0.1 s), measured after each learned trial outside its timed phases and stored in its
     ``timings.extra``, so that the cost model can set each file's seconds against the machine (and
     the load) that measured them. Empty off the CPU, where the probe's CPU time is not the device's."""
     if jax.default_backend() != "cpu":
