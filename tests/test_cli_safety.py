@@ -303,6 +303,18 @@ def test_del_with_no_more_particles_than_state_dimensions_is_refused_before_any_
     assert code == 2 and "--set num_particles 3: del_cost fits a Gaussian" in o.err and not calls
     preflight.check_density_fit(("del",), 5, 4)  # P = D + 1 is enough
     preflight.check_density_fit(("tp", "rp"), 2, 4)  # the other estimators fit nothing
+    # the check asks the composed estimator, not its name: a spec with settings, a composition
+    from pipps.propagation.cost_terms import density_estimation_costs, plain_costs
+    from pipps.propagation.estimators import compose
+    from pipps.propagation.parts import biw_lr, density_lr, pathwise
+
+    with pytest.raises(ConfigError, match="--particles 4: del fits a Gaussian"):
+        preflight.check_density_fit(("tp", "del:baseline=none"), 4, 4)
+    for own in (compose(density_estimation_costs(baseline="none", weights="cost"), pathwise()),
+                compose(plain_costs(), density_lr(baseline="none"))):
+        with pytest.raises(ConfigError, match=r"the composed estimator fits a Gaussian .* \(at least 5\)"):
+            preflight.check_density_fit((own, compose(plain_costs(), biw_lr())), 4, 4)
+    preflight.check_density_fit((compose(plain_costs(), biw_lr()),), 2, 4)
 
 
 def test_seeds_are_bounded_by_what_every_draw_can_start_from(tmp_path, capsys):

@@ -221,23 +221,43 @@ def check_experiment(cfg: ExperimentConfig, *, seeds: int = 1, processes: int = 
     except ValueError as err:
         raise ConfigError(f"method: {err}") from None
     if not cfg.is_pilco:
-        check_density_fit((cfg.method_spec.estimator,), cfg.num_particles, problem.model_dim, option=particles)
+        from pipps.experiments.methods import method_estimator
+
+        spec = cfg.method_spec.estimator
+        label = spec if isinstance(spec, str) else cfg.method
+        check_density_fit({label: method_estimator(cfg.method_spec, cfg.estimator_choices)}, cfg.num_particles,
+                          problem.model_dim, option=particles)
     horizon = int(cfg.horizon or problem.horizon)
     check_noise(cfg.task, cfg.preset, cfg.k, cfg.num_trials * horizon, option=k)
     return check_memory(cfg, seeds=seeds, processes=processes, particles=particles)
 
 
-#: the estimators that fit a Gaussian density to the particles at every step (DEL's readings)
-DENSITY_FIT_ESTIMATORS = ("del", "del_cost")
+def _fits_density(estimator) -> bool:
+    """Whether ``estimator`` (a spec such as ``"del:baseline=none"``, or a composition) fits a Gaussian
+    to the particles at every step; an unparseable spec is left to the code that reads it."""
+    from pipps.propagation.estimators import from_spec
+
+    if not isinstance(estimator, str):
+        return estimator.fits_density
+    try:
+        return from_spec(str(estimator)).fits_density
+    except ValueError:
+        return False
 
 
 def check_density_fit(estimators, particles: int, state_dim: int, option: str = "--particles") -> None:
-    """DEL fits a Gaussian to the P particles at each step: its unbiased covariance has rank at most
-    P − 1, so P ≤ D (the model state's dimension) makes the fitted density degenerate. Raises
-    :class:`ConfigError` naming ``option`` before anything runs, instead of at the first policy search."""
-    names = sorted({str(e).split(":")[0] for e in estimators if isinstance(e, str)} & set(DENSITY_FIT_ESTIMATORS))
-    if names and particles <= state_dim:
-        raise ConfigError(f"{option} {particles}: {', '.join(names)} fits a Gaussian to the particles in the "
+    """An estimator that fits a Gaussian to the P particles at each step (DEL's readings, any
+    composition with such a piece) needs P > D: the unbiased covariance has rank at most P − 1, so
+    P ≤ D (the model state's dimension) makes the fitted density degenerate. Raises
+    :class:`ConfigError` naming ``option`` before anything runs, instead of at the first policy search.
+    ``estimators``: specs (``"del:baseline=none"``) and compositions, or a ``{label: estimator}`` mapping
+    whose labels the message names."""
+    pairs = estimators.items() if isinstance(estimators, dict) else \
+        [(e.split(":")[0] if isinstance(e, str) else "the composed estimator", e) for e in estimators]
+    fitting = [label for label, e in pairs if _fits_density(e)]
+    if fitting and particles <= state_dim:
+        names = ", ".join(dict.fromkeys(fitting))
+        raise ConfigError(f"{option} {particles}: {names} fits a Gaussian to the particles in the "
                           f"model's {state_dim} state dimensions and needs more particles than that "
                           f"(at least {state_dim + 1})")
 

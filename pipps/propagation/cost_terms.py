@@ -149,6 +149,7 @@ class DensityEstimationCosts(PreviousBaseline):
     weights: str = "returns"
 
     feeds_likelihood_ratio = False
+    fits_density = True  # a Gaussian fitted to the particles at every step
 
     def init(self, context) -> MeanReturn | tuple:
         state = super().init(context)

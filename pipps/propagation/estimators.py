@@ -103,6 +103,12 @@ class Estimator:
         return LIKELIHOOD_RATIO in self.kinds
 
     @property
+    def fits_density(self) -> bool:
+        """A piece fits a Gaussian to the P particles at every step (DEL's): its unbiased covariance has
+        rank at most P − 1, so the estimator needs more particles than the state has dimensions."""
+        return any(getattr(piece, "fits_density", False) for piece in self.pieces)
+
+    @property
     def total_propagation(self) -> bool:
         """Two parts, weighed by the combiner (TP and its variants)."""
         return len(self.parts) == 2

@@ -91,6 +91,7 @@ class DensityLR(PreviousBaseline):
     baseline: str = "previous"
 
     kind = LIKELIHOOD_RATIO
+    fits_density = True  # a Gaussian fitted to the particles at every step
 
     def zeta(self, state, inputs: StepInputs, config: RolloutConfig) -> tuple[MeanReturn | tuple, ZetaGrad]:
         b, next_state = self.previous_baseline(state, inputs.returns)

@@ -26,7 +26,11 @@ The kinds, each a :class:`typing.Protocol` that every built-in piece satisfies
 
 Every piece also says whether its state after ``init`` is a *cold start* (``cold_start``): then the
 first estimate falls back on its own batch (the "previous" ``k_LR`` uses this batch's weight), and
-only the state an estimate leaves is what later optimizer iterations read.
+only the state an estimate leaves is what later optimizer iterations read. A piece that fits a
+Gaussian to the particles at every step (DEL's cost terms and LR part) says so with
+``fits_density = True``: the estimator then needs more particles than the model state has
+dimensions, and the CLI's checks ask the composed estimator (``Estimator.fits_density``), not its
+name. A piece without the attribute fits nothing.
 """
 
 from __future__ import annotations
