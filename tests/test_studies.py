@@ -252,3 +252,36 @@ def test_snapshot_of_a_fitc_trial_reproduces_its_stored_prediction(tmp_path):
     rcfg, _ = particle_method(cfg)
     pred = _particle_prediction(snap.task, rcfg, cfg.store_particles)(k_pred, snap.unravel(stored.policy), snap.model)
     np.testing.assert_allclose(pred["particles"], stored.predicted.particles, rtol=1e-9, atol=1e-9)
+
+
+def _alignment_script():
+    """experiments/del_gradient_alignment.py as a module (a script, not part of the package)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "experiments/del_gradient_alignment.py"
+    spec = importlib.util.spec_from_file_location("del_gradient_alignment", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    return script
+
+
+def test_the_del_alignment_script_measures_each_reading_against_the_reference(capsys):
+    """docs/results.md's "Where the failing runs stuck" table, small: at trial 1 of a committed DEL run
+    (balancing; every estimator points down the gradient there), the library's TP, the reference's own
+    estimator at fewer particles, must point along the reference, and each row must count its
+    finite estimates. A wrong reference, sign or projection would break the first row's numbers."""
+    script = _alignment_script()
+    run = Path(__file__).resolve().parents[1] / "results/thesis/cartpole_balance_angle_k1_del_thesis_s0.h5"
+    with pytest.raises(SystemExit):
+        script.main([str(run), "--trial", "1", "--readings", "del:nonsense"])
+    assert "--readings: unknown del:nonsense" in capsys.readouterr().err
+    script.main([str(run), "--trial", "1", "--particles", "10", "--repeats", "3", "--reference-particles", "20",
+                 "--reference-repeats", "4", "--readings", "tp:library,del:library"])
+    out = capsys.readouterr().out
+    assert "P = 10, 3 estimates each; reference: library TP at P = 20, 4 estimates" in out
+    rows = [line.split(" | ") for line in out.splitlines() if line.startswith("| ") and "/3 |" in line]
+    assert [r[0] for r in rows] == ["| DEL, library (returns-to-go, one step)", "| TP, library"]  # READINGS' order
+    tp = rows[1]
+    assert tp[1] == "3/3" and float(tp[2]) > 0.9  # cos(E ĝ, g_ref): the same estimator as the reference
+    projection, half_width = (float(v) for v in tp[3].split(" ± "))
+    assert abs(projection - 1) < max(3 * half_width, 0.3)
