@@ -285,3 +285,28 @@ def test_the_del_alignment_script_measures_each_reading_against_the_reference(ca
     assert tp[1] == "3/3" and float(tp[2]) > 0.9  # cos(E ĝ, g_ref): the same estimator as the reference
     projection, half_width = (float(v) for v in tp[3].split(" ± "))
     assert abs(projection - 1) < max(3 * half_width, 0.3)
+
+
+def test_mardias_statistics_tell_a_gaussian_from_a_uniform_and_a_skewed_marginal():
+    """experiments/del_marginal_shape.py's statistics: kurtosis over D(D+2) is 1 for a Gaussian and
+    (1.8·D + D(D−1)) / (D(D+2)) = 0.8 for independent standardised uniforms in D = 4 (E z⁴ = 1.8);
+    skewness b₁ is about D(D+1)(D+2)/P for a Gaussian and far above it for exponentials.
+    Tolerances: five standard errors of b₂/(D(D+2)), √(8 / (D(D+2)P)) for a Gaussian."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "experiments/del_marginal_shape.py"
+    spec = importlib.util.spec_from_file_location("del_marginal_shape", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    from pipps.precision import enable_float64
+
+    enable_float64()
+    P, D = 4_000, 4  # b₁ takes a P × P matrix
+    tol = 5 * np.sqrt(8 / (D * (D + 2) * P))
+    k = jax.random.split(jax.random.PRNGKey(0), 3)
+    kurt, skew = script.mardia(jax.random.normal(k[0], (P, D)))
+    assert abs(float(kurt) - 1) < tol and float(skew) < 3 * D * (D + 1) * (D + 2) / P
+    kurt, _ = script.mardia(jax.random.uniform(k[1], (P, D)))
+    assert abs(float(kurt) - 0.8) < tol
+    _, skew = script.mardia(jax.random.exponential(k[2], (P, D)))
+    assert float(skew) > 100 * D * (D + 1) * (D + 2) / P
