@@ -194,3 +194,27 @@ def test_the_calibration_script_re_simulates_final_policies_with_fresh_rollouts(
     cell = re.search(r"^\| 1 \| TP \| 1 \| ([0-9.]+) \| ([0-9.]+) \| ([0-9.]+) \| ([0-9.]+) \|$", out, re.M)
     assert cell is not None
     assert [float(x) for x in cell.groups()] == [round(below, 2), round(fresh_below, 2), 0.0, round(fresh_balanced, 2)]
+
+
+def test_the_resimulation_script_reproduces_a_files_own_rollouts_and_judges_fresh_ones(capsys):
+    """experiments/resimulate_final.py on a cart-pole and a unicycle file: with the trial's own keys the
+    returns equal the stored ones to rounding (the true system is deterministic given them) and the
+    criterion's flags equal the stored ones; the fresh rollouts are judged by the same verdict."""
+    import importlib.util
+    import re
+
+    spec = importlib.util.spec_from_file_location("resimulate_final",
+                                                  RESULTS.parents[1] / "experiments/resimulate_final.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    files = [RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5", RESULTS / "unicycle_default_k1_tp_thesis_s3.h5"]
+    script.main([str(f) for f in files] + ["--fresh", "8"])
+    out = capsys.readouterr().out
+    worst = float(re.search(r"the largest return difference from the stored returns is (\S+);", out).group(1))
+    assert worst < 1e-9 and "every file's criterion flags equal the stored ones" in out
+    assert "| cartpole_swingup | angle | 1 | TP | thesis | 1 | " in out and "| unicycle | - | 1 | TP | thesis | 1 | 1.00 |" in out
+    from pipps.reporting.verdicts import criterion
+
+    result = read_result(files[0])
+    below = np.mean(np.asarray(result.trials[-1].eval_returns) < criterion(result.config).threshold)
+    assert f"| {below:.2f} |" in out.split("Per cell")[1]
