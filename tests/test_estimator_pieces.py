@@ -27,6 +27,7 @@ from pipps.propagation.cost_terms import density_estimation_costs, plain_costs, 
 from pipps.propagation.estimators import (
     ESTIMATORS,
     NAMED,
+    compose,
     estimator,
     estimator_table,
     from_spec,
@@ -277,3 +278,15 @@ def test_a_spec_is_labelled_and_refused_by_name():
     with pytest.raises(ValueError, match="unknown estimator settings"):
         from_spec("tp:kl=0.5")
     assert set(NAMED) == set(ESTIMATORS)
+
+
+def test_an_estimator_fits_a_density_exactly_when_one_of_its_pieces_does():
+    """``Estimator.fits_density`` (what the CLI's particle check asks) comes from the pieces: DEL's
+    cost terms and LR part fit a Gaussian to the particles; no other registered estimator does,
+    in either variant."""
+    for entry in ESTIMATORS.values():
+        for est in (entry.estimator, entry.thesis or entry.estimator):
+            assert est.fits_density == (entry.name in ("del", "del_cost")), entry.name
+    assert compose(density_estimation_costs(baseline="none"), pathwise()).fits_density
+    assert compose(plain_costs(), density_lr()).fits_density
+    assert not compose(shaped_costs(), pathwise(), biw_lr(), combiner=inverse_variance()).fits_density
