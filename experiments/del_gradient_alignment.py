@@ -25,7 +25,10 @@ The reference's own quality is printed beside it: the cosine between the means o
 (a weak check where estimates are heavy-tailed: rare large ones that the reference's draws miss
 would not show).
 Estimators: the thesis preset's DEL (returns-to-go, the fit's derivative down the whole chain), the
-library's DEL (one step to θ), DEL_c (own cost, whole chain), and TP both ways.
+library's DEL (one step to θ), DEL_c (own cost, whole chain), TP both ways, and the library's
+BIW-LR: the same returns-to-go and the same one step to θ as the library's DEL, with the score of
+the particles' exact one-step mixture density in place of a fitted Gaussian's, so that the two
+differ only in the density.
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ READINGS = (
     ("del_cost", "thesis", "DEL_c (own cost, whole chain)"),
     ("tp", "thesis", "TP, thesis preset"),
     ("tp", "library", "TP, library"),
+    ("lr", "library", "BIW-LR, library (returns-to-go, one step, the mixture density)"),
 )
 
 
