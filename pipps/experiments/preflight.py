@@ -240,7 +240,7 @@ def _fits_density(estimator) -> bool:
     if not isinstance(estimator, str):
         return estimator.fits_density
     try:
-        return from_spec(str(estimator)).fits_density
+        return from_spec(estimator).fits_density
     except ValueError:
         return False
 
