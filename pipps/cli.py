@@ -262,6 +262,16 @@ def build_parser() -> argparse.ArgumentParser:
                          "seeds) and paired by seed; results that depart from the preset only in SETTING count "
                          "without --custom")
 
+    rs = sub.add_parser("resimulate", help="re-run each complete result's final policy on the true system: its own "
+                                           "evaluation keys must reproduce the stored returns and verdict, and fresh "
+                                           "rollouts test whether the verdict holds")
+    rs.add_argument("results", nargs="*", default=["runs"], help="result files or folders (default: runs); incomplete "
+                                                                 "files are listed and skipped")
+    rs.add_argument("--fresh", type=_positive_int, default=300,
+                    help="independent rollouts per final policy, with keys the experiment never used (default 300)")
+    rs.add_argument("--seed", type=int, default=0, help="seed of the fresh rollouts' keys (default 0; the same seed "
+                                                       "gives every file the same keys, so files compare paired)")
+
     pl = sub.add_parser("plot", help="write a rerun recording (.rrd) of results or a study; --png renders it",
                         description="Writes a rerun recording of experiment results (files or folders) or of one study "
                                     "file (pipps study / pipps bench output). --figure picks what it shows; the "
@@ -819,6 +829,30 @@ def _study_kind(path) -> str | None:
     return str(kind) if kind is not None else None
 
 
+def _cmd_resimulate(args) -> int:
+    from pipps.experiments.resimulate import Resimulator
+    from pipps.experiments.results import ResultError, read_result
+    from pipps.reporting.resimulation import check_final, render
+
+    if args.fresh < 2:
+        raise UsageError(f"--fresh {args.fresh}: a fresh verdict needs at least 2 rollouts")
+    simulator, checks, skipped = Resimulator(), [], []
+    for path in _result_paths(args.results):
+        try:
+            result = read_result(path)
+        except ResultError as err:
+            skipped.append(str(err))
+            continue
+        checks.append(check_final(result, simulator, fresh=args.fresh, seed=args.seed, path=str(path)))
+    for text in skipped:
+        print(f"skipped: {text}", file=sys.stderr)
+    if not checks:
+        raise UsageError("no complete result to re-simulate in " + ", ".join(args.results))
+    print(render(checks, args.fresh))
+    # a file whose own keys do not give its stored flags stores a verdict its policy does not earn
+    return 0 if all(c.flags_equal for c in checks) else 1
+
+
 def _cmd_plot(args) -> int:
     from pipps.reporting.plot import check_viewer, render_png
     from pipps.experiments.storage import check_new_file, publish
@@ -1221,7 +1255,8 @@ def _dispatch(args) -> int:
             print(f"  episode {i}: return (total cost) {ret:.4f} over {n} steps")
         print(f"  mean return {rep.returns.mean():.4f}")
         return 0
-    handlers = {"run": _cmd_run, "sweep": _cmd_sweep, "table": _cmd_table, "plot": _cmd_plot, "study": _cmd_study,
+    handlers = {"run": _cmd_run, "sweep": _cmd_sweep, "table": _cmd_table, "resimulate": _cmd_resimulate,
+                "plot": _cmd_plot, "study": _cmd_study,
                 "bench": _cmd_bench}
     return handlers[args.command](args)
 

@@ -195,18 +195,19 @@ def test_table_and_cells_figure_count_a_folder_of_quick_results_as_quick(fake_lo
 
 def test_the_readmes_next_steps_run_as_written_after_its_quick_start(fake_loop, tmp_path, capsys, monkeypatch):
     """Each ``pipps`` line of the README's block after the quick start, as written (a run or a sweep
-    with ``--dry-run`` added; the study and the own-task line need a real result and a module)."""
+    with ``--dry-run`` added; the re-simulation, the study and the own-task line need a real result and
+    a module: tests/test_verdicts.py runs ``pipps resimulate`` on stored results)."""
     import re
     import shlex
 
     readme = (REPO / "README.md").read_text()
     block = re.search(r"Then:\n+```bash\n(.*?)```", readme, re.S).group(1)
     lines = [shlex.split(line.split("#")[0]) for line in block.splitlines() if line.startswith("pipps ")]
-    assert [argv[1] for argv in lines] == ["table", "plot", "run", "sweep", "study", "run"]
+    assert [argv[1] for argv in lines] == ["table", "resimulate", "plot", "run", "sweep", "study", "run"]
     monkeypatch.chdir(tmp_path)
     assert cli(capsys, "run", "--quiet", "--preset", "quick")[0] == 0  # the quick start
     for argv in lines:
-        if argv[1] == "study" or "--task" in argv:
+        if argv[1] in ("study", "resimulate") or "--task" in argv:
             continue
         if argv[1] in ("run", "sweep"):
             argv.append("--dry-run")

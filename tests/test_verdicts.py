@@ -196,25 +196,66 @@ def test_the_calibration_script_re_simulates_final_policies_with_fresh_rollouts(
     assert [float(x) for x in cell.groups()] == [round(below, 2), round(fresh_below, 2), 0.0, round(fresh_balanced, 2)]
 
 
-def test_the_resimulation_script_reproduces_a_files_own_rollouts_and_judges_fresh_ones(capsys):
-    """experiments/resimulate_final.py on a cart-pole and a unicycle file: with the trial's own keys the
-    returns equal the stored ones to rounding (the true system is deterministic given them) and the
-    criterion's flags equal the stored ones; the fresh rollouts are judged by the same verdict."""
-    import importlib.util
+def test_pipps_resimulate_reproduces_each_files_own_rollouts_and_judges_fresh_ones(capsys):
+    """``pipps resimulate`` on a cart-pole and a unicycle file: with the trial's own keys the returns
+    equal the stored ones to rounding (the true system is deterministic given them, float64) and the
+    criterion's flags equal the stored ones; the fresh rollouts are judged by the same verdict as
+    the stored ones, and the cell row pools them."""
     import re
 
-    spec = importlib.util.spec_from_file_location("resimulate_final",
-                                                  RESULTS.parents[1] / "experiments/resimulate_final.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    from pipps.cli import main
+    from pipps.reporting.verdicts import criterion, verdict
+
     files = [RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5", RESULTS / "unicycle_default_k1_tp_thesis_s3.h5"]
-    script.main([str(f) for f in files] + ["--fresh", "8"])
+    assert main(["resimulate", *map(str, files), "--fresh", "8", "--seed", "3"]) == 0
     out = capsys.readouterr().out
     worst = float(re.search(r"the largest return difference from the stored returns is (\S+);", out).group(1))
+    # a return is a sum of H ≤ 100 costs in [0, 1]: rounding alone stays far below 1e-9
     assert worst < 1e-9 and "every file's criterion flags equal the stored ones" in out
-    assert "| cartpole_swingup | angle | 1 | TP | thesis | 1 | " in out and "| unicycle | - | 1 | TP | thesis | 1 | 1.00 |" in out
-    from pipps.reporting.verdicts import criterion
-
+    sim = Resimulator()
+    for f in files:
+        result = read_result(f)
+        ret, _, flags = sim.trial(result, len(result.trials) - 1, fresh=8, seed=3)
+        fresh = verdict(result.config, ret, flags)
+        row = next(line for line in out.splitlines() if line.startswith(f"| {f.name} |"))
+        assert f"| {fresh.fraction:.2f} [" in row and f"{np.mean(ret):.2f} ± " in row
+        assert row.split("|")[5].strip().endswith("pass" if fresh.success else "fail")
     result = read_result(files[0])
     below = np.mean(np.asarray(result.trials[-1].eval_returns) < criterion(result.config).threshold)
-    assert f"| {below:.2f} |" in out.split("Per cell")[1]
+    cells = out.split("Per cell")[1]
+    assert "| cartpole_swingup | angle | 1 | TP | thesis | thesis | 1 | " in cells and f"| {below:.2f} |" in cells
+    assert "| unicycle | unicycle | 1 | TP | thesis | thesis | 1 | 1.00 [" in cells
+
+
+def test_pipps_resimulate_fails_a_file_whose_stored_flags_its_policy_does_not_earn(monkeypatch, capsys):
+    """A stored verdict its policy does not reproduce is reported by name and makes the command exit 1
+    (one final rollout's stored flag flipped in memory: the checksum would refuse a tampered file)."""
+    import dataclasses
+
+    import pipps.experiments.results as results
+    from pipps.cli import main
+
+    path = RESULTS / "unicycle_default_k1_tp_thesis_s3.h5"
+    result = read_result(path)
+    final = result.trials[-1]
+    flipped = np.asarray(final.eval_upright, bool).copy()
+    flipped[0] = not flipped[0]
+    tampered = dataclasses.replace(result, trials=[*result.trials[:-1], dataclasses.replace(final, eval_upright=flipped)])
+    monkeypatch.setattr(results, "read_result", lambda p, **kw: tampered)
+    assert main(["resimulate", str(path), "--fresh", "2"]) == 1
+    out = capsys.readouterr().out
+    assert "| unicycle_default_k1_tp_thesis_s3.h5 | 3 | " in out and ", NO |" in out
+    assert "differ from the stored ones in unicycle_default_k1_tp_thesis_s3.h5" in out
+
+
+def test_pipps_resimulate_skips_incomplete_files_and_refuses_bad_input(tmp_path, capsys):
+    from pipps.cli import main
+
+    assert main(["resimulate", str(RESULTS / "unicycle_default_k1_tp_thesis_s3.h5"), "--fresh", "1"]) == 2
+    assert "--fresh 1: a fresh verdict needs at least 2 rollouts" in capsys.readouterr().err
+    (tmp_path / "broken.h5").write_bytes(b"not HDF5")
+    assert main(["resimulate", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "skipped: " in err and "broken.h5" in err and "no complete result to re-simulate" in err
+    assert main(["resimulate", str(tmp_path / "absent")]) == 2
+    assert "no such result file or folder" in capsys.readouterr().err

@@ -22,6 +22,7 @@ import numpy as np
 from pipps.experiments.config import ConfigError, ExperimentConfig, canonical, resolve_config
 from pipps.experiments.methods import METHODS
 from pipps.reporting import readings
+from pipps.reporting.readings import wilson_interval
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,17 +194,6 @@ def table_configs(
 def _used(method: str, overrides: dict[str, Any]) -> dict[str, Any]:
     """The overrides ``method`` uses."""
     return {k: v for k, v in overrides.items() if k.replace("-", "_") not in METHODS[method].unused}
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
-    """The 95 % Wilson score interval of a binomial proportion (Wilson, 1927)."""
-    if n <= 0:
-        return (0.0, 1.0)
-    p = successes / n
-    den = 1.0 + z * z / n
-    centre = (p + z * z / (2 * n)) / den
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return (max(0.0, centre - half), min(1.0, centre + half))
 
 
 def _cell_key(values: dict[str, Any], method: str, cfg: ExperimentConfig) -> bool:
