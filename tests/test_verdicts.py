@@ -224,6 +224,10 @@ def test_pipps_resimulate_reproduces_each_files_own_rollouts_and_judges_fresh_on
     below = np.mean(np.asarray(result.trials[-1].eval_returns) < criterion(result.config).threshold)
     cells = out.split("Per cell")[1]
     assert "| cartpole_swingup | angle | 1 | TP | thesis | thesis | 1 | " in cells and f"| {below:.2f} |" in cells
+    ret, _, _ = sim.trial(result, len(result.trials) - 1, fresh=8, seed=3)
+    fresh_below = np.mean(ret < criterion(result.config).threshold)
+    assert f"| {below:.2f}, {fresh_below:.2f} |" in out.split("Per cell")[0]
+    assert next(line for line in out.splitlines() if line.startswith(f"| {files[1].name} |")).endswith("| – |")
     assert "| unicycle | unicycle | 1 | TP | thesis | thesis | 1 | 1.00 [" in cells
 
 

@@ -143,14 +143,16 @@ def render(checks, fresh: int) -> str:
     from pathlib import Path
 
     lines = ["| file | seed | own keys: max abs. return difference, flags equal | stored: fraction meeting the "
-             "criterion, verdict | fresh: fraction [95 % Wilson], mean return ± SE, verdict | verdict holds |",
-             "|---|---|---|---|---|---|"]
+             "criterion, verdict | fresh: fraction [95 % Wilson], mean return ± SE, verdict | verdict holds | below the "
+             "return threshold: stored, fresh |",
+             "|---|---|---|---|---|---|---|"]
     for c in checks:
         lines.append(
             f"| {Path(c.path).name} | {c.seed} | {c.own_max_difference:.1e}, {'yes' if c.flags_equal else 'NO'} | "
             f"{c.stored.fraction:.2f}, {_pass(c.stored)} | {c.fresh.fraction:.2f} {_ci(c.fresh_interval)}, "
             f"{np.mean(c.fresh_returns):.2f} ± {c.fresh_return_se:.2f}, {_pass(c.fresh)} | "
-            f"{'yes' if c.holds else 'NO'} |")
+            f"{'yes' if c.holds else 'NO'} | "
+            + ("– |" if c.stored_below is None else f"{c.stored_below:.2f}, {c.fresh_below:.2f} |"))
     worst = max(c.own_max_difference for c in checks)
     differ = [Path(c.path).name for c in checks if not c.flags_equal]
     lines += ["", f"Own keys: the largest return difference from the stored returns is {worst:.1e}; "
