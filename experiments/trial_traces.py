@@ -1,6 +1,7 @@
 """Per learned trial of particle-method result files: the true return against the model's objective at
 the last policy step, the median gradient norm, TP's k_LR averaged over time steps and policy steps
-(NaN for a method without it), non-finite and skipped steps, and where the recorded rollout left the
+(NaN for a method without it), non-finite and skipped steps, the fraction of the trial's evaluation
+rollouts meeting the task's success criterion, and, on the cart-pole, where the recorded rollout left the
 pole and the cart (docs/results.md, the flat-cost plateaus of k = 16 TP seed 2 and k = 9 TP seed 17;
 docs/estimator-variance.md, the library's and the thesis' k_LR rules while learning).
 
@@ -34,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from pipps.experiments.results import read_result
+from pipps.reporting.verdicts import final_flags
 
 
 def _mean(values) -> float:
@@ -126,14 +128,19 @@ def main(argv=None) -> None:
         return
     for path in args.files:
         print(path)
-        for t in read_result(path, verify=False).trials:
+        result = read_result(path, verify=False)
+        cartpole = result.config.task.startswith("cartpole")
+        for t in result.trials:
             if t.kind != "learned":
                 continue
             trace, states = t.opt_trace, np.asarray(t.states)
+            flags = final_flags(result.config, t)
+            where = (f"  max |θ| {np.abs(states[:, 3]).max():.2f}  cart end {states[-1, 0]:.1f} m" if cartpole else "")
+            met = "" if flags is None else f"  criterion met {np.mean(flags):.2f}"
             print(f"  trial {t.index:03d}: return {t.eval_return:.2f}  model {float(trace.particle_objective[-1]):.2f}  "
-                  f"median |grad| {np.median(trace.grad_norm):.2g}  mean k_LR {_mean(t.diagnostics.k_lr):.3f}  non-finite {int(np.sum(t.diagnostics.nonfinite_steps))}  "
-                  f"skipped {int(np.sum(trace.skipped))}  max |θ| {np.abs(states[:, 3]).max():.2f}  "
-                  f"cart end {states[-1, 0]:.1f} m")
+                  f"median |grad| {np.median(trace.grad_norm):.2g}  mean k_LR {_mean(t.diagnostics.k_lr):.3f}  "
+                  f"non-finite {int(np.sum(t.diagnostics.nonfinite_steps))}  skipped {int(np.sum(trace.skipped))}"
+                  f"{met}{where}")
 
 
 if __name__ == "__main__":
