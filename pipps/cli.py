@@ -843,14 +843,21 @@ def _cmd_resimulate(args) -> int:
         except ResultError as err:
             skipped.append(str(err))
             continue
+        if result.trials[-1].kind != "learned":
+            skipped.append(f"{path}: its last trial is a random one; nothing learned to re-simulate")
+            continue
         checks.append(check_final(result, simulator, fresh=args.fresh, seed=args.seed, path=str(path)))
     for text in skipped:
         print(f"skipped: {text}", file=sys.stderr)
     if not checks:
         raise UsageError("no complete result to re-simulate in " + ", ".join(args.results))
-    print(render(checks, args.fresh))
-    # a file whose own keys do not give its stored flags stores a verdict its policy does not earn
-    return 0 if all(c.flags_equal for c in checks) else 1
+    try:
+        text = render(checks, args.fresh)
+    except ValueError as err:  # one experiment given twice
+        raise UsageError(str(err)) from None
+    print(text)
+    # a file whose own keys do not give its stored returns or flags stores a verdict its policy does not earn
+    return 0 if all(c.reproduced for c in checks) else 1
 
 
 def _cmd_plot(args) -> int:

@@ -211,7 +211,8 @@ def test_pipps_resimulate_reproduces_each_files_own_rollouts_and_judges_fresh_on
     out = capsys.readouterr().out
     worst = float(re.search(r"the largest return difference from the stored returns is (\S+);", out).group(1))
     # a return is a sum of H ≤ 100 costs in [0, 1]: rounding alone stays far below 1e-9
-    assert worst < 1e-9 and "every file's criterion flags equal the stored ones" in out
+    assert worst < 1e-9 and "every stored set of criterion flags is reproduced" in out
+    assert "1 file(s) store no flags" in out  # the cart-pole file predates them: its returns alone are checked
     sim = Resimulator()
     for f in files:
         result = read_result(f)
@@ -223,12 +224,13 @@ def test_pipps_resimulate_reproduces_each_files_own_rollouts_and_judges_fresh_on
     result = read_result(files[0])
     below = np.mean(np.asarray(result.trials[-1].eval_returns) < criterion(result.config).threshold)
     cells = out.split("Per cell")[1]
-    assert "| cartpole_swingup | angle | 1 | TP | thesis | thesis | 1 | " in cells and f"| {below:.2f} |" in cells
+    assert "| cartpole_swingup | thesis | angle | 1 | TP | thesis | – | 1 | " in cells and f"| {below:.2f} |" in cells
     ret, _, _ = sim.trial(result, len(result.trials) - 1, fresh=8, seed=3)
     fresh_below = np.mean(ret < criterion(result.config).threshold)
     assert f"| {below:.2f}, {fresh_below:.2f} |" in out.split("Per cell")[0]
     assert next(line for line in out.splitlines() if line.startswith(f"| {files[1].name} |")).endswith("| – |")
-    assert "| unicycle | unicycle | 1 | TP | thesis | thesis | 1 | 1.00 [" in cells
+    assert "| unicycle | thesis | unicycle | 1 | TP | thesis | – | 1 | 1.00 [" in cells
+    assert f"| {files[0].name} | 4 | " in out and ", not stored |" in out
 
 
 def test_pipps_resimulate_fails_a_file_whose_stored_flags_its_policy_does_not_earn(monkeypatch, capsys):
@@ -250,6 +252,50 @@ def test_pipps_resimulate_fails_a_file_whose_stored_flags_its_policy_does_not_ea
     out = capsys.readouterr().out
     assert "| unicycle_default_k1_tp_thesis_s3.h5 | 3 | " in out and ", NO |" in out
     assert "differ from the stored ones in unicycle_default_k1_tp_thesis_s3.h5" in out
+
+
+def test_pipps_resimulate_fails_a_file_whose_stored_returns_its_policy_does_not_give(monkeypatch, capsys):
+    """One stored return moved by 1e-3 (far beyond rounding, far below what would move a verdict): the
+    command names the file and exits 1."""
+    import dataclasses
+
+    import pipps.experiments.results as results
+    from pipps.cli import main
+
+    path = RESULTS / "unicycle_default_k1_tp_thesis_s3.h5"
+    result = read_result(path)
+    final = result.trials[-1]
+    moved = np.asarray(final.eval_returns, float).copy()
+    moved[3] += 1e-3
+    tampered = dataclasses.replace(result, trials=[*result.trials[:-1], dataclasses.replace(final, eval_returns=moved)])
+    monkeypatch.setattr(results, "read_result", lambda p, **kw: tampered)
+    assert main(["resimulate", str(path), "--fresh", "2"]) == 1
+    out = capsys.readouterr().out
+    assert "1.0e-03 (NOT rounding), yes |" in out and "beyond rounding in unicycle_default_k1_tp_thesis_s3.h5" in out
+
+
+def test_pipps_resimulate_pools_a_cells_seeds_with_their_intervals_and_counts_each_once(capsys):
+    """Two seeds of one cell: its row is the mean of the seeds' fractions with the clustered interval of
+    their counts (stored: the files' upright flags; fresh: the simulator's), computed here apart from
+    the command; the same file given twice is refused."""
+    from pipps.cli import main
+    from pipps.reporting.readings import clustered_interval
+
+    files = [RESULTS / f"unicycle_default_k1_pilco_thesis_s{s}.h5" for s in (2, 3)]
+    assert main(["resimulate", *map(str, files), "--fresh", "5"]) == 0
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| unicycle | thesis |"))
+    sim, stored, fresh = Resimulator(), [], []
+    for f in files:
+        result = read_result(f)
+        stored.append(int(np.sum(result.trials[-1].eval_upright)))
+        fresh.append(int(np.sum(sim.trial(result, len(result.trials) - 1, fresh=5, seed=0)[2])))
+    expect = []
+    for counts, n in ((stored, 30), (fresh, 5)):
+        lo, hi = clustered_interval(counts, [n, n])
+        expect.append(f"{np.mean(counts) / n:.2f} [{lo:.2f}, {hi:.2f}]")
+    assert f"| PILCO | thesis | – | 2 | {expect[0]} | {expect[1]} | – | – |" in row, (row, expect)
+    assert main(["resimulate", str(files[0]), str(files[0]), "--fresh", "2"]) == 2
+    assert "seed 2 of one cell twice" in capsys.readouterr().err
 
 
 def test_pipps_resimulate_skips_incomplete_files_and_refuses_bad_input(tmp_path, capsys):

@@ -35,14 +35,22 @@ class FinalCheck:
 
     path: str
     seed: int
-    cell: tuple  # (task, cost, k, method label, experiment preset, estimator choices)
+    cell: tuple  # (task, task preset, cost, k, method label, experiment preset, departures from it)
     own_max_difference: float  # largest |return with the trial's own keys − stored return|
-    flags_equal: bool  # the criterion's flags with the own keys equal the stored ones
+    returns_equal: bool  # that difference is within RESIM_TOLERANCE of the returns' size (rounding only)
+    flags_stored: bool  # the file stores the criterion's flags (files from before they were stored do not)
+    flags_equal: bool  # the criterion's flags with the own keys equal the stored ones (True where none are stored)
     stored: Verdict  # the verdict on the stored rollouts
     fresh: Verdict  # the verdict on the fresh rollouts
     fresh_returns: np.ndarray
     stored_below: float | None  # fraction of stored returns below the task's threshold (None: it has none)
     stored_rollouts: int  # the final trial's evaluation rollouts
+
+    @property
+    def reproduced(self) -> bool:
+        """The trial's own keys give the stored returns and, where the file stores them, the stored flags:
+        the stored verdict is what the policy does."""
+        return self.returns_equal and self.flags_equal
 
     @property
     def holds(self) -> bool:
@@ -70,6 +78,7 @@ def check_final(result, simulator, *, fresh: int, seed: int = 0, path: str = "")
     """Re-simulate the final trial of a complete ``result`` (:class:`ExperimentResult`) with its own
     keys and with ``fresh`` new rollouts from ``seed`` (:meth:`Resimulator.trial`)."""
     from pipps.experiments.methods import METHODS
+    from pipps.reporting.tables import RESIM_TOLERANCE
 
     if fresh < 2:
         raise ValueError(f"fresh must be at least 2 rollouts (a standard error needs two), got {fresh}")
@@ -79,7 +88,9 @@ def check_final(result, simulator, *, fresh: int, seed: int = 0, path: str = "")
         raise ValueError(f"{path or 'result'}: its last trial is a random one; is the experiment complete?")
     stored_flags = final_flags(cfg, final)
     own_returns, _, own_flags = simulator.trial(result, index)
-    difference = float(np.max(np.abs(own_returns - np.asarray(final.eval_returns, dtype=float))))
+    stored_returns = np.asarray(final.eval_returns, dtype=float)
+    difference = float(np.max(np.abs(own_returns - stored_returns)))
+    returns_equal = difference <= RESIM_TOLERANCE * max(1.0, float(np.max(np.abs(stored_returns))))
     flags_equal = stored_flags is None or bool(np.array_equal(np.asarray(own_flags, bool),
                                                               np.asarray(stored_flags, bool)))
     stored = verdict(cfg, final.eval_returns, own_flags if stored_flags is None else stored_flags)
@@ -89,9 +100,21 @@ def check_final(result, simulator, *, fresh: int, seed: int = 0, path: str = "")
     cost = cfg.cost or cfg.task_spec.default_cost(cfg.preset)
     if cfg.cost_scale != 1.0:
         cost += f" ×{cfg.cost_scale:g}"
-    cell = (cfg.task, cost, cfg.k, METHODS[cfg.method].label, cfg.protocol, cfg.estimator_choices)
-    return FinalCheck(path, cfg.seed, cell, difference, flags_equal, stored, verdict(cfg, returns, flags),
-                      np.asarray(returns, dtype=float), below, len(final.eval_returns))
+    cell = (cfg.task, cfg.preset, cost, cfg.k, METHODS[cfg.method].label, cfg.protocol, _departures(cfg))
+    return FinalCheck(path, cfg.seed, cell, difference, returns_equal, stored_flags is not None, flags_equal, stored,
+                      verdict(cfg, returns, flags), np.asarray(returns, dtype=float), below, len(final.eval_returns))
+
+
+def _departures(cfg) -> str:
+    """The settings in which ``cfg`` departs from its experiment preset, ``name=value`` (``–``: none), so
+    that results of different settings never pool into one cell."""
+    from pipps.experiments.config import ConfigError, config_hash, departures
+
+    try:
+        away = departures(cfg.replace(seed=0))
+    except ConfigError:  # the preset cannot express this cell at all: its whole configuration tells it apart
+        return f"custom (configuration {config_hash(cfg.replace(seed=0))[:8]})"
+    return ", ".join(f"{name}={value!r}" for name, (value, _) in sorted(away.items())) or "–"
 
 
 @dataclass(frozen=True)
@@ -110,12 +133,19 @@ class CellRow:
 
 
 def cell_rows(checks) -> list[CellRow]:
-    """:class:`CellRow` per cell of ``checks``, sorted by cell."""
+    """:class:`CellRow` per cell of ``checks``, sorted by cell. ValueError where one cell holds one seed
+    twice (the same experiment given in two places would count twice)."""
     groups = defaultdict(list)
     for c in checks:
         groups[c.cell].append(c)
     rows = []
     for cell, cs in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0]))):
+        seen = {}
+        for c in cs:
+            if c.seed in seen:
+                raise ValueError(f"seed {c.seed} of one cell twice: {seen[c.seed]} and {c.path}; give each "
+                                 "experiment once")
+            seen[c.seed] = c.path
         thresholded = [c for c in cs if c.stored_below is not None]
         stored_n = [c.stored_rollouts for c in cs]
         fresh_n = [c.fresh_returns.size for c in cs]
@@ -138,36 +168,54 @@ def _pass(v: Verdict) -> str:
     return "pass" if v.success else "fail"
 
 
+def _own_keys(c: FinalCheck) -> str:
+    returns = f"{c.own_max_difference:.1e}" + ("" if c.returns_equal else " (NOT rounding)")
+    flags = "not stored" if not c.flags_stored else ("yes" if c.flags_equal else "NO")
+    return f"{returns}, {flags}"
+
+
 def render(checks, fresh: int) -> str:
     """The per-file and per-cell Markdown tables of ``checks`` (what ``pipps resimulate`` prints)."""
     from pathlib import Path
 
+    rows = cell_rows(checks)  # first: it refuses a seed given twice
     lines = ["| file | seed | own keys: max abs. return difference, flags equal | stored: fraction meeting the "
              "criterion, verdict | fresh: fraction [95 % Wilson], mean return ± SE, verdict | verdict holds | below the "
              "return threshold: stored, fresh |",
              "|---|---|---|---|---|---|---|"]
     for c in checks:
         lines.append(
-            f"| {Path(c.path).name} | {c.seed} | {c.own_max_difference:.1e}, {'yes' if c.flags_equal else 'NO'} | "
+            f"| {Path(c.path).name} | {c.seed} | {_own_keys(c)} | "
             f"{c.stored.fraction:.2f}, {_pass(c.stored)} | {c.fresh.fraction:.2f} {_ci(c.fresh_interval)}, "
             f"{np.mean(c.fresh_returns):.2f} ± {c.fresh_return_se:.2f}, {_pass(c.fresh)} | "
             f"{'yes' if c.holds else 'NO'} | "
             + ("– |" if c.stored_below is None else f"{c.stored_below:.2f}, {c.fresh_below:.2f} |"))
     worst = max(c.own_max_difference for c in checks)
+    off = [Path(c.path).name for c in checks if not c.returns_equal]
     differ = [Path(c.path).name for c in checks if not c.flags_equal]
-    lines += ["", f"Own keys: the largest return difference from the stored returns is {worst:.1e}; "
-              + ("every file's criterion flags equal the stored ones." if not differ else
-                 f"the criterion's flags differ from the stored ones in {', '.join(differ)}: those files' verdicts "
-                 "are not what their policies do.")]
+    unstored = [Path(c.path).name for c in checks if not c.flags_stored]
+    text = f"Own keys: the largest return difference from the stored returns is {worst:.1e}"
+    text += ("; " if not off else f", beyond rounding in {', '.join(off)}; ")
+    text += ("every stored set of criterion flags is reproduced." if not differ else
+             f"the criterion's flags differ from the stored ones in {', '.join(differ)}.")
+    if off or differ:
+        text += " Those files' stored verdicts are not what their policies do."
+    if unstored:
+        text += (f" {len(unstored)} file(s) store no flags (written before they were stored): their stored "
+                 "verdict is the re-simulated one, checked through the returns alone.")
+    lines += ["", text]
     lines += ["", f"Per cell, the per-trial rate (mean over seeds of the final policy's fraction meeting the task's "
               f"criterion) with its 95 % interval over seeds, from the stored evaluation rollouts and from {fresh} fresh "
-              "ones per seed; where the task has a return threshold, the mean fraction of rollouts below it:",
-              "| task | cost | k | method | preset | choices | seeds | criterion: stored | fresh | below threshold: stored "
-              "| fresh | per-seed verdicts that hold |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in cell_rows(checks):
-        task, cost, k, label, protocol, choices = r.cell
+              "ones per seed (the same fresh keys for every seed); where the task has a return threshold, the mean "
+              "fraction of rollouts below it. A cell is a task and task preset, cost, k, method and experiment preset, "
+              "with the settings in which its results depart from that preset:",
+              "| task | task preset | cost | k | method | experiment preset | departures | seeds | criterion: stored "
+              "| fresh | below threshold: stored | fresh | per-seed verdicts that hold |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        task, preset, cost, k, label, protocol, away = r.cell
         below = ("–", "–") if r.stored_below is None else (f"{r.stored_below:.2f}", f"{r.fresh_below:.2f}")
-        lines.append(f"| {task} | {cost} | {k:g} | {label} | {protocol} | {choices} | {r.seeds} | {r.stored_rate:.2f} {_ci(r.stored_interval)} | "
-                     f"{r.fresh_rate:.2f} {_ci(r.fresh_interval)} | {below[0]} | {below[1]} | {r.verdicts_hold}/{r.seeds} |")
+        lines.append(f"| {task} | {preset} | {cost} | {k:g} | {label} | {protocol} | {away} | {r.seeds} | "
+                     f"{r.stored_rate:.2f} {_ci(r.stored_interval)} | {r.fresh_rate:.2f} {_ci(r.fresh_interval)} | "
+                     f"{below[0]} | {below[1]} | {r.verdicts_hold}/{r.seeds} |")
     return "\n".join(lines)
