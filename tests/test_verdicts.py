@@ -227,7 +227,9 @@ def test_pipps_resimulate_reproduces_each_files_own_rollouts_and_judges_fresh_on
     assert "| cartpole_swingup | thesis | angle | 1 | TP | thesis | – | 1 | " in cells and f"| {below:.2f} |" in cells
     ret, _, _ = sim.trial(result, len(result.trials) - 1, fresh=8, seed=3)
     fresh_below = np.mean(ret < criterion(result.config).threshold)
-    assert f"| {below:.2f}, {fresh_below:.2f} |" in out.split("Per cell")[0]
+    threshold = criterion(result.config).threshold
+    holds = "yes" if (np.mean(ret) < threshold) == (np.mean(result.trials[-1].eval_returns) < threshold) else "NO"
+    assert f"| {below:.2f}, {fresh_below:.2f}; {holds} |" in out.split("Per cell")[0]
     assert next(line for line in out.splitlines() if line.startswith(f"| {files[1].name} |")).endswith("| – |")
     assert "| unicycle | thesis | unicycle | 1 | TP | thesis | – | 1 | 1.00 [" in cells
     assert f"| {files[0].name} | 4 | " in out and ", not stored |" in out

@@ -64,6 +64,11 @@ class FinalCheck:
         return wilson_interval(round(self.fresh.fraction * n), n)
 
     @property
+    def return_holds(self) -> bool | None:
+        """The fresh rollouts' mean return is on the stored mean's side of the threshold (None: no threshold)."""
+        return None if self.stored.return_success is None else self.fresh.return_success == self.stored.return_success
+
+    @property
     def fresh_return_se(self) -> float:
         r = self.fresh_returns
         return float(np.std(r, ddof=1) / math.sqrt(r.size))
@@ -180,8 +185,8 @@ def render(checks, fresh: int) -> str:
 
     rows = cell_rows(checks)  # first: it refuses a seed given twice
     lines = ["| file | seed | own keys: max abs. return difference, flags equal | stored: fraction meeting the "
-             "criterion, verdict | fresh: fraction [95 % Wilson], mean return ± SE, verdict | verdict holds | below the "
-             "return threshold: stored, fresh |",
+             "criterion, verdict | fresh: fraction [95 % Wilson], mean return ± SE, verdict | verdict holds | return "
+             "threshold: fraction below it, stored and fresh; the mean-return verdict holds |",
              "|---|---|---|---|---|---|---|"]
     for c in checks:
         lines.append(
@@ -189,7 +194,8 @@ def render(checks, fresh: int) -> str:
             f"{c.stored.fraction:.2f}, {_pass(c.stored)} | {c.fresh.fraction:.2f} {_ci(c.fresh_interval)}, "
             f"{np.mean(c.fresh_returns):.2f} ± {c.fresh_return_se:.2f}, {_pass(c.fresh)} | "
             f"{'yes' if c.holds else 'NO'} | "
-            + ("– |" if c.stored_below is None else f"{c.stored_below:.2f}, {c.fresh_below:.2f} |"))
+            + ("– |" if c.stored_below is None else
+               f"{c.stored_below:.2f}, {c.fresh_below:.2f}; {'yes' if c.return_holds else 'NO'} |"))
     worst = max(c.own_max_difference for c in checks)
     off = [Path(c.path).name for c in checks if not c.returns_equal]
     differ = [Path(c.path).name for c in checks if not c.flags_equal]
