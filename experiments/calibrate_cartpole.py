@@ -17,7 +17,9 @@ learned policy of the given result files:
    the stored and the fresh mean return, fraction below the threshold and fraction balanced, and
    whether the per-seed verdicts by the return and by the physical criterion hold; per cell, the
    per-trial rates (the thesis' counting and the physical one) from the stored and the fresh
-   rollouts.
+   rollouts. ``pipps resimulate FILES --fresh N`` prints the same re-simulation (the same keys, so
+   the same numbers) for any task, with intervals; this option stays for the outputs quoted in the
+   docs.
 
     python experiments/calibrate_cartpole.py results/thesis/cartpole_*.h5
     python experiments/calibrate_cartpole.py results/thesis/cartpole_*.h5 --fresh 300
