@@ -18,7 +18,7 @@ learned policy of the given result files:
    whether the per-seed verdicts by the return and by the physical criterion hold; per cell, the
    per-trial rates (the thesis' counting and the physical one) from the stored and the fresh
    rollouts. ``pipps resimulate FILES --fresh N`` prints the same re-simulation (the same keys, so
-   the same numbers) for any task, with intervals; this option stays for the outputs quoted in the
+   the same rollouts) for any task, with intervals; this option stays for the outputs quoted in the
    docs.
 
     python experiments/calibrate_cartpole.py results/thesis/cartpole_*.h5
