@@ -36,6 +36,9 @@ import numpy as np
 
 from pipps.experiments.results import read_result
 from pipps.reporting.verdicts import final_flags
+from pipps.tasks.registry import get_task
+
+CARTPOLE = (get_task("cartpole_swingup"), get_task("cartpole_balance"))
 
 
 def _mean(values) -> float:
@@ -129,7 +132,7 @@ def main(argv=None) -> None:
     for path in args.files:
         print(path)
         result = read_result(path, verify=False)
-        cartpole = result.config.task.startswith("cartpole")
+        cartpole = result.config.task_spec in CARTPOLE  # the pole and cart columns read a cart-pole's state
         for t in result.trials:
             if t.kind != "learned":
                 continue
