@@ -12,21 +12,20 @@ file, :func:`check_final` runs the final trial's policy twice, outside the learn
    verdict again, and, where the task has a return threshold (the cart-pole's), the fraction of
    rollouts whose return is below it.
 
-:func:`cell_rows` pools the checks per cell (task, cost, k, method, experiment preset, estimator choices): the
-per-trial rate (the mean over seeds of the final policy's fractions) from the stored and from the
+:func:`cell_rows` pools the checks per cell (task and task preset, cost, k, method, experiment preset
+and the settings that depart from it): the per-trial rate (the mean over seeds of the final policy's fractions) from the stored and from the
 fresh rollouts, and how many per-seed verdicts hold.
 """
 
 from __future__ import annotations
 
-import math
 from collections import defaultdict
 from dataclasses import dataclass
 
 import numpy as np
 
 from pipps.reporting.readings import clustered_interval, wilson_interval
-from pipps.reporting.verdicts import Verdict, criterion, final_flags, verdict
+from pipps.reporting.verdicts import Verdict, criterion, final_flags, standard_error, verdict
 
 
 @dataclass(frozen=True)
@@ -70,8 +69,7 @@ class FinalCheck:
 
     @property
     def fresh_return_se(self) -> float:
-        r = self.fresh_returns
-        return float(np.std(r, ddof=1) / math.sqrt(r.size))
+        return standard_error(self.fresh_returns)
 
     @property
     def fresh_below(self) -> float | None:
@@ -83,7 +81,7 @@ def check_final(result, simulator, *, fresh: int, seed: int = 0, path: str = "")
     """Re-simulate the final trial of a complete ``result`` (:class:`ExperimentResult`) with its own
     keys and with ``fresh`` new rollouts from ``seed`` (:meth:`Resimulator.trial`)."""
     from pipps.experiments.methods import METHODS
-    from pipps.reporting.tables import RESIM_TOLERANCE
+    from pipps.reporting.tables import returns_reproduced
 
     if fresh < 2:
         raise ValueError(f"fresh must be at least 2 rollouts (a standard error needs two), got {fresh}")
@@ -95,7 +93,7 @@ def check_final(result, simulator, *, fresh: int, seed: int = 0, path: str = "")
     own_returns, _, own_flags = simulator.trial(result, index)
     stored_returns = np.asarray(final.eval_returns, dtype=float)
     difference = float(np.max(np.abs(own_returns - stored_returns)))
-    returns_equal = difference <= RESIM_TOLERANCE * max(1.0, float(np.max(np.abs(stored_returns))))
+    returns_equal = returns_reproduced(own_returns, stored_returns)
     flags_equal = stored_flags is None or bool(np.array_equal(np.asarray(own_flags, bool),
                                                               np.asarray(stored_flags, bool)))
     stored = verdict(cfg, final.eval_returns, own_flags if stored_flags is None else stored_flags)

@@ -216,6 +216,13 @@ def _cell_key(values: dict[str, Any], method: str, cfg: ExperimentConfig) -> boo
 RESIM_TOLERANCE = 1e-6
 
 
+def returns_reproduced(returns, stored) -> bool:
+    """Re-simulated ``returns`` equal the ``stored`` ones within :data:`RESIM_TOLERANCE` of their size."""
+    stored = np.asarray(stored, dtype=float)
+    gap = float(np.max(np.abs(np.asarray(returns, dtype=float) - stored)))
+    return gap <= RESIM_TOLERANCE * max(1.0, float(np.max(np.abs(stored))))
+
+
 def judge(summaries: list[dict[str, Any]], resimulator=None) -> list[dict[str, Any]]:
     """Add both verdicts to result summaries (:func:`pipps.experiments.results.read_summary`), in place,
     each the task's (:func:`pipps.reporting.verdicts.verdict`):
@@ -266,7 +273,7 @@ def _resimulated_flags(s: dict[str, Any], rets: np.ndarray, resimulator) -> np.n
     ret, _, flags = resimulator.trial(result, len(result.trials) - 1)
     s["resimulated"] = True
     s["resim_error"] = float(np.max(np.abs(ret - rets)))
-    if not s["resim_error"] <= RESIM_TOLERANCE * max(1.0, float(np.max(np.abs(rets)))):
+    if not returns_reproduced(ret, rets):
         raise ResultError(f"{s['path']}: re-simulating its final evaluation gives returns that differ from "
                           f"the stored ones by {s['resim_error']:.2g}; its physical verdict cannot be "
                           "re-judged (another simulator or policy layout?)")
