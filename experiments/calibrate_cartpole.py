@@ -12,17 +12,12 @@ learned policy of the given result files:
 2. :func:`pipps.reporting.calibration.fit_return_threshold` finds the thresholds τ for which
    "return < τ" agrees best with the physical verdict, and the agreement of the thesis' τ = 15;
 3. every policy on which the thesis' threshold and the physical criterion disagree is listed, per k;
-4. ``--fresh N`` also re-simulates each file's final policy with N independent rollouts (new keys):
-   the independent check that a verdict is not an accident of its 30 rollouts. Per file it prints
-   the stored and the fresh mean return, fraction below the threshold and fraction balanced, and
-   whether the per-seed verdicts by the return and by the physical criterion hold; per cell, the
-   per-trial rates (the thesis' counting and the physical one) from the stored and the fresh
-   rollouts. ``pipps resimulate FILES --fresh N`` prints the same re-simulation (the same keys, so
-   the same rollouts) for any task, with intervals; this option stays for the outputs quoted in the
-   docs.
+4. the final trials' rates at other required fractions and other bounds of the criterion.
+
+The independent check that a verdict is not an accident of its 30 rollouts (each final policy rerun
+with new keys) is ``pipps resimulate FILES --fresh N``, for any task.
 
     python experiments/calibrate_cartpole.py results/thesis/cartpole_*.h5
-    python experiments/calibrate_cartpole.py results/thesis/cartpole_*.h5 --fresh 300
 """
 
 from __future__ import annotations
@@ -45,7 +40,6 @@ pipps.enable_float64()
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("results", nargs="+", metavar="H5", help="cart-pole result files")
-    ap.add_argument("--fresh", type=int, default=0, help="also re-simulate each final policy with N new rollouts")
     ap.add_argument("--fractions", default="0.5,0.8", help="required balanced fractions to report rates at")
     ap.add_argument("--bounds", default="0.2:0.3,0.3:0.5,0.5:1.0",
                     help="ANGLE:POSITION pairs (rad, m) to report the final trials' rates at (sensitivity)")
@@ -143,30 +137,6 @@ def main(argv=None) -> None:
     for (k, m), (a, p), moved, passed in differ:
         print(f"  k = {k:g}, {METHODS[m].label}, at {a:g} : {p:g}: the verdict differs from the criterion's on seed(s) "
               + ", ".join(f"{s} ({'passes' if s in passed else 'fails'})" for s in moved))
-    if args.fresh:
-        print(f"\nFinal policies re-simulated with {args.fresh} independent rollouts each (below: the fraction of "
-              "rollouts with return below the threshold, the thesis' per-trial counting for one seed):")
-        print("| k | method | seed | stored: return, below, balanced | fresh: return ± SE, below, balanced "
-              "| return verdict holds | physical verdict holds |")
-        print("|---|---|---|---|---|---|---|")
-        cells = defaultdict(list)
-        for res, r in sorted(finals, key=lambda x: (x[1][0], x[1][1], x[1][2])):
-            ret, _, flags = sim.trial(res, len(res.trials) - 1, fresh=args.fresh)
-            stored_below = float(np.mean(np.asarray(res.trials[-1].eval_returns) < r[7]))
-            fresh_below = float(np.mean(ret < r[7]))
-            f_ok, s_ok = float(np.mean(flags)) >= r[6], r[5] >= r[6]
-            f_ret, s_ret = float(np.mean(ret)) < r[7], r[4] < r[7]
-            se = float(np.std(ret, ddof=1) / np.sqrt(ret.size))
-            print(f"| {r[0]:g} | {METHODS[r[1]].label} | {r[2]} | {r[4]:.2f}, {stored_below:.2f}, {r[5]:.2f} | "
-                  f"{np.mean(ret):.2f} ± {se:.2f}, {fresh_below:.2f}, {np.mean(flags):.2f} | "
-                  f"{'yes' if f_ret == s_ret else 'NO'} | {'yes' if f_ok == s_ok else 'NO'} |")
-            cells[(r[0], r[1])].append((stored_below, fresh_below, r[5], float(np.mean(flags))))
-        print("\nPer cell, the per-trial rates (mean over seeds of the final policy's fractions), stored and fresh:")
-        print("| k | method | seeds | per trial, return: stored | fresh | per trial, physical: stored | fresh |")
-        print("|---|---|---|---|---|---|---|")
-        for (k, m), v in sorted(cells.items()):
-            a = np.mean(np.array(v), axis=0)
-            print(f"| {k:g} | {METHODS[m].label} | {len(v)} | {a[0]:.2f} | {a[1]:.2f} | {a[2]:.2f} | {a[3]:.2f} |")
 
 
 if __name__ == "__main__":

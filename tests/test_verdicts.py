@@ -171,31 +171,6 @@ def test_the_calibration_script_refuses_files_of_two_costs():
         script.main([str(angle), str(tip)])
 
 
-def test_the_calibration_script_re_simulates_final_policies_with_fresh_rollouts(capsys):
-    """``--fresh N``: per file, the stored and the fresh return, fraction below 15 and fraction balanced,
-    with both per-seed verdicts; per cell, the per-trial rates from the stored and the fresh rollouts.
-    The fresh numbers are those of the re-simulator's own fresh rollouts (seed 0)."""
-    import re
-
-    script = _calibration_script()
-    path = RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5"
-    script.main([str(path), "--fresh", "8"])
-    out = capsys.readouterr().out
-    result = read_result(path)
-    final = result.trials[-1]
-    below = float(np.mean(np.asarray(final.eval_returns) < 15))
-    ret, _, flags = Resimulator().trial(result, len(result.trials) - 1, fresh=8)
-    fresh_below, fresh_balanced = float(np.mean(ret < 15)), float(np.mean(flags))
-    se = float(np.std(ret, ddof=1) / np.sqrt(ret.size))
-    holds = "yes" if (np.mean(ret) < 15) == (final.eval_return < 15) else "NO"
-    assert (f"| 1 | TP | 4 | {final.eval_return:.2f}, {below:.2f}, 0.00 | {np.mean(ret):.2f} ± {se:.2f}, "
-            f"{fresh_below:.2f}, {fresh_balanced:.2f} | {holds} | "
-            f"{'yes' if fresh_balanced < 0.5 else 'NO'} |") in out
-    cell = re.search(r"^\| 1 \| TP \| 1 \| ([0-9.]+) \| ([0-9.]+) \| ([0-9.]+) \| ([0-9.]+) \|$", out, re.M)
-    assert cell is not None
-    assert [float(x) for x in cell.groups()] == [round(below, 2), round(fresh_below, 2), 0.0, round(fresh_balanced, 2)]
-
-
 def test_pipps_resimulate_reproduces_each_files_own_rollouts_and_judges_fresh_ones(capsys):
     """``pipps resimulate`` on a cart-pole and a unicycle file: with the trial's own keys the returns
     equal the stored ones to rounding (the true system is deterministic given them, float64) and the
