@@ -179,6 +179,23 @@ def test_table_counts_cells_and_flags_disagreement():
     assert empty == "**Table 4.4 — unicycle balancing**: no complete results for this table."
 
 
+def test_table_names_seeds_near_the_line_and_the_command_that_checks_them():
+    """A seed whose verdict a fresh evaluation would flip with probability above 5 % is named under
+    the table, and the re-simulation command that checks it is named once; with no such seed, neither."""
+    from pipps.reporting.tables import RESIMULATE_HINT
+
+    cfgs = table_configs("4.1", 4, "thesis", methods=["tp", "pilco"], ks=[1.0])
+    summaries = [{"config": c, "success": True, "final_return": 10.0, "wall_seconds": 60.0,
+                  "per_seed": _per_seed(c.seed, 10), "flip": 0.3 if c.seed in (1, 3) else 0.01} for c in cfgs]
+    text = render_table(TABLES["4.1"], collect(TABLES["4.1"], summaries))
+    assert "k = 1, TP: a fresh evaluation would flip the per-seed physical verdict with probability > 5 % on seed(s) 1, 3." in text
+    assert "k = 1, PILCO: a fresh evaluation would flip" in text
+    assert text.count(RESIMULATE_HINT) == 1 and text.rstrip().endswith(RESIMULATE_HINT)
+    calm = [dict(s, flip=0.01) for s in summaries]
+    text = render_table(TABLES["4.1"], collect(TABLES["4.1"], calm))
+    assert "a fresh evaluation would flip" not in text and RESIMULATE_HINT not in text
+
+
 def test_seed_rows_list_each_counted_seed_in_order_with_both_counts():
     cfgs = table_configs("4.1", 6, "thesis", methods=["tp"], ks=[9.0])
     summaries = [{"config": c, "success": c.seed == 4, "return_success": c.seed < 3, "final_return": 12.0 + c.seed / 4,

@@ -472,9 +472,7 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
     diffs = render_differences(table, results, compare)
     if diffs:
         lines += ["", diffs]
-    notes = _cell_notes(results)
-    if notes:
-        lines += [""] + notes
+    lines += _closing(_cell_notes(results))
     return "\n".join(lines)
 
 
@@ -653,6 +651,20 @@ def _cell_notes(results: list[CellResult], group: str = "") -> list[str]:
     return notes
 
 
+#: the line under a table's notes when some verdict is near its line: the command that checks it
+RESIMULATE_HINT = ("To check such seeds, `pipps resimulate FILES --fresh 300` reruns their final policies on the true "
+                   "system with new rollouts.")
+
+
+def _closing(notes: list[str]) -> list[str]:
+    """``notes`` as the lines under a table, with :data:`RESIMULATE_HINT` once where a note names seeds
+    a fresh evaluation would flip."""
+    if not notes:
+        return []
+    hint = [RESIMULATE_HINT] if any("a fresh evaluation would flip" in n for n in notes) else []
+    return ["", *notes, *hint]
+
+
 def comparable_settings() -> tuple[str, ...]:
     """The settings :func:`split_by` may group by: every setting of an experiment's identity
     (:func:`pipps.experiments.config.canonical`) other than the seed."""
@@ -766,7 +778,7 @@ def render_comparison(table: Table, setting: str, groups: list[tuple[Any, list[C
     if len(lines) == 4:
         return f"**{table.title}**, by {setting}: no complete results for this table."
     notes = [note for name, (_, results) in zip(names, groups) for note in _cell_notes(results, name)]
-    return "\n".join(lines + ([""] + notes if notes else []))
+    return "\n".join(lines + _closing(notes))
 
 
 def render_curves(summaries: list[dict[str, Any]]) -> str:
