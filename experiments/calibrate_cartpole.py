@@ -53,14 +53,15 @@ def main(argv=None) -> None:
     for path in args.results:
         res = read_result(path)
         cfg = res.config
-        tasks.setdefault((cfg.task, cfg.cost), path)
+        if cfg.task_spec not in cartpole:
+            raise SystemExit(f"{path}: task {cfg.task!r} is not a cart-pole task; the balance criterion's bounds "
+                             "calibrated here are the cart-pole's")
+        # a file that does not name its cost ran the preset's (older files store None)
+        tasks.setdefault((cfg.task, cfg.cost or cfg.task_spec.default_cost(cfg.preset)), path)
         if len(tasks) > 1:
             (t0, c0), (t1, c1) = tasks
             raise SystemExit(f"{path}: task {t1!r} with the {c1} cost, and {tasks[(t0, c0)]}: {t0!r} with the {c0} "
                              "cost; give one task and cost at a time (a threshold and a cell are one cost's)")
-        if cfg.task_spec not in cartpole:
-            raise SystemExit(f"{path}: task {cfg.task!r} is not a cart-pole task; the balance criterion's bounds "
-                             "calibrated here are the cart-pole's")
         for t in res.trials:
             if t.kind != "learned":
                 continue

@@ -171,6 +171,16 @@ def test_the_calibration_script_refuses_files_of_two_costs():
         script.main([str(angle), str(tip)])
 
 
+def test_the_calibration_script_reads_an_unnamed_cost_as_the_presets(capsys):
+    """Older files store no cost (None: they ran the preset's, the Angle Cost); with files that name
+    it, they are one cost, not two."""
+    script = _calibration_script()
+    unnamed, named = RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s0.h5", RESULTS / "cartpole_swingup_angle_k1_glr_thesis_s0.h5"
+    assert read_result(unnamed).config.cost is None and read_result(named).config.cost == "angle"
+    script.main([str(named), str(unnamed), "--bounds", "0.3:0.5"])
+    assert "30 learned policies from 2 files" in capsys.readouterr().out
+
+
 def test_pipps_resimulate_reproduces_each_files_own_rollouts_and_judges_fresh_ones(capsys):
     """``pipps resimulate`` on a cart-pole and a unicycle file: with the trial's own keys the returns
     equal the stored ones to rounding (the true system is deterministic given them, float64) and the
