@@ -472,7 +472,7 @@ def render_table(table: Table, results: list[CellResult], *, show_empty: bool = 
     diffs = render_differences(table, results, compare)
     if diffs:
         lines += ["", diffs]
-    lines += _closing(_cell_notes(results))
+    lines += _closing(_cell_notes(results), any(r.unsure for r in results))
     return "\n".join(lines)
 
 
@@ -656,13 +656,12 @@ RESIMULATE_HINT = ("To check such seeds, `pipps resimulate FILES --fresh 300` re
                    "system with new rollouts.")
 
 
-def _closing(notes: list[str]) -> list[str]:
-    """``notes`` as the lines under a table, with :data:`RESIMULATE_HINT` once where a note names seeds
-    a fresh evaluation would flip."""
+def _closing(notes: list[str], unsure: bool) -> list[str]:
+    """``notes`` as the lines under a table, with :data:`RESIMULATE_HINT` once where some cell has
+    seeds a fresh evaluation would flip (``unsure``)."""
     if not notes:
         return []
-    hint = [RESIMULATE_HINT] if any("a fresh evaluation would flip" in n for n in notes) else []
-    return ["", *notes, *hint]
+    return ["", *notes, *([RESIMULATE_HINT] if unsure else [])]
 
 
 def comparable_settings() -> tuple[str, ...]:
@@ -778,7 +777,7 @@ def render_comparison(table: Table, setting: str, groups: list[tuple[Any, list[C
     if len(lines) == 4:
         return f"**{table.title}**, by {setting}: no complete results for this table."
     notes = [note for name, (_, results) in zip(names, groups) for note in _cell_notes(results, name)]
-    return "\n".join(lines + _closing(notes))
+    return "\n".join(lines + _closing(notes, any(r.unsure for _, results in groups for r in results)))
 
 
 def render_curves(summaries: list[dict[str, Any]]) -> str:
