@@ -57,7 +57,7 @@ def main(argv=None) -> None:
             raise SystemExit(f"{path}: task {cfg.task!r} is not a cart-pole task; the balance criterion's bounds "
                              "calibrated here are the cart-pole's")
         # a file that does not name its cost ran the preset's (older files store None)
-        tasks.setdefault((cfg.task, cfg.cost or cfg.task_spec.default_cost(cfg.preset)), path)
+        tasks.setdefault((cfg.task, cfg.cost_name), path)
         if len(tasks) > 1:
             (t0, c0), (t1, c1) = tasks
             raise SystemExit(f"{path}: task {t1!r} with the {c1} cost, and {tasks[(t0, c0)]}: {t0!r} with the {c0} "

@@ -199,6 +199,8 @@ def test_the_default_cost_and_its_name_are_one_experiment():
     assert a != b and same_experiment(a, b) and experiment_name(a) == experiment_name(b)
     assert config_hash(a) == config_hash(b)
     assert not same_experiment(a, resolve_config("thesis", "cartpole_swingup", cost="tip"))
+    assert a.cost_name == b.cost_name == "angle"  # the one name tables, plots and re-simulation print
+    assert resolve_config("pilco", "cartpole_swingup").cost_name == "tip"
 
 
 # -- 3. one writer per file, one protocol per sweep folder -------------------------------------------------

@@ -161,6 +161,12 @@ class ExperimentConfig:
     def table_name(self) -> str:
         return self.method_spec.label
 
+    @property
+    def cost_name(self) -> str:
+        """The cost the experiment optimises, by name: :attr:`cost`, or where that is ``None`` the
+        one its task gives the preset (the cart-pole's thesis preset: ``"angle"``)."""
+        return self.cost or self.task_spec.default_cost(self.preset)
+
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
@@ -480,8 +486,7 @@ def canonical(cfg: ExperimentConfig) -> dict[str, Any]:
     d = cfg.to_dict()
     preset = protocol_config(cfg).to_dict()
     d.update({name: preset[name] for name in cfg.method_spec.unused})
-    if d["cost"] is None:
-        d["cost"] = cfg.task_spec.default_cost(cfg.preset)
+    d["cost"] = cfg.cost_name
     for name, hint in _field_types().items():  # k=1 and k=1.0 are one experiment (and one hash)
         v = d[name]
         if float in typing.get_args(hint) + (hint,) and isinstance(v, int) and not isinstance(v, bool):

@@ -241,7 +241,7 @@ def group_label(r: ExperimentResult) -> str:
     """A group's name for a reader: method, k, and the settings that set it apart."""
     c = r.config
     spec = c.task_spec
-    cost = c.cost or spec.default_cost(c.preset)
+    cost = c.cost_name
     text = f"{METHODS[c.method].label}, k = {c.k:g}"
     if len(spec.costs) > 1:  # the cost sets groups apart only where the task has several
         text += f", {cost} cost"

@@ -40,7 +40,7 @@ _PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 
 
 def group_name(r: ExperimentResult) -> str:
     c = r.config
-    cost = c.cost or c.task_spec.default_cost(c.preset)
+    cost = c.cost_name
     if c.centre_std is None and c.policy == "rbf" and c.policy_init == "start":
         cost += "_startcentres"
     return f"{c.task}_{cost}_k{c.k:g}_{c.method}".replace("+", "plus").replace(".", "p")

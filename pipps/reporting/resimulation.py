@@ -100,7 +100,7 @@ def check_final(result, simulator, *, fresh: int, seed: int = 0, path: str = "")
     returns, _, flags = simulator.trial(result, index, fresh=fresh, seed=seed)
     threshold = criterion(cfg).threshold
     below = None if threshold is None else float(np.mean(np.asarray(final.eval_returns) < threshold))
-    cost = cfg.cost or cfg.task_spec.default_cost(cfg.preset)
+    cost = cfg.cost_name
     if cfg.cost_scale != 1.0:
         cost += f" ×{cfg.cost_scale:g}"
     cell = (cfg.task, cfg.preset, cost, cfg.k, METHODS[cfg.method].label, cfg.protocol, _departures(cfg))

@@ -200,9 +200,7 @@ def _cell_key(values: dict[str, Any], method: str, cfg: ExperimentConfig) -> boo
     if cfg.method != method:
         return False
     for name, v in values.items():
-        got = getattr(cfg, name)
-        if name == "cost" and got is None:
-            got = cfg.task_spec.default_cost(cfg.preset)
+        got = cfg.cost_name if name == "cost" else getattr(cfg, name)
         if isinstance(v, float) and isinstance(got, (int, float)):
             if not math.isclose(float(got), v, rel_tol=1e-9):
                 return False
