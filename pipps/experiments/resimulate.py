@@ -52,7 +52,7 @@ class Resimulator:
             steps, angle, position = balance
             cfg = cfg.replace(balance_steps=steps, balance_angle=angle, balance_position=position)
         bounds = (cfg.balance_steps, cfg.balance_angle, cfg.balance_position)
-        key = (cfg.task, cfg.preset, cfg.k, cfg.cost, cfg.cost_scale, cfg.horizon, cfg.policy, cfg.num_basis, bounds)
+        key = (cfg.task, cfg.preset, cfg.k, cfg.cost_name, cfg.cost_scale, cfg.horizon, cfg.policy, cfg.num_basis, bounds)
         if key not in self._programs:
             task = make_experiment_task(cfg)
             unravel = policy_unraveler(cfg, task.problem)
