@@ -354,7 +354,7 @@ def test_cli_plot_draws_the_committed_unicycle_cells_and_curves(tmp_path, capsys
     assert main(["plot", *map(str, UNICYCLE), "--figure", "cells", "--out", str(out), "--overwrite"]) == 0
     rec, _, _ = read_rrd(out)
     assert labels(rec, "/cells/table_4_4/data/tp/counts") == [f"{len(UNICYCLE)}"]
-    assert "success rates in table(s) 4.4 (4 results counted over their cells)" in capsys.readouterr().out
+    assert f"success rates in table(s) 4.4 ({len(UNICYCLE)} results counted over their cells)" in capsys.readouterr().out
 
 
 def test_cli_plot_draws_a_study_file_with_its_own_figure(tmp_path):
