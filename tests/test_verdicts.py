@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.stats import binom
 
-from pipps.experiments.resimulate import Resimulator
+from pipps.experiments.resimulate import Resimulator, program_key
 from pipps.experiments.results import read_result, read_summary
 from pipps.reporting.tables import difference_interval, fisher_exact, judge, wilson_interval
 from pipps.reporting.verdicts import flip_probability_fraction, flip_probability_return
@@ -107,6 +107,25 @@ def test_resimulation_reproduces_a_stored_evaluation_exactly_and_judges_it():
     assert s["return_success"] and not s["success"] and s["final_balanced"] == float(np.mean(flags)) == 0.0
     with pytest.raises(ValueError, match="random trial"):
         Resimulator().trial(result, 0)
+
+
+def test_resimulation_programs_are_shared_only_across_learning_settings():
+    """Files that differ only in how they learned (method, seed, particles, estimator rule) share one
+    compiled program; any setting the true system, the policy's structure or the success rule may
+    read (here the return threshold, the balance bounds, the noise, the task's source) gets its own,
+    and a file naming its preset's default cost shares the program of one naming none."""
+    cfg = read_result(RESULTS / "cartpole_swingup_angle_k1_tp_thesis_s4.h5").config
+    same = [cfg.replace(seed=7), cfg.replace(method="pilco"), cfg.replace(num_particles=100),
+            cfg.replace(estimator_choices="library"), cfg.replace(cost=None), cfg.replace(cost=cfg.cost_name)]
+    assert all(program_key(c) == program_key(cfg) for c in same)
+    other = [cfg.replace(success_threshold=14.0), cfg.replace(balance_angle=0.5), cfg.replace(k=9.0),
+             cfg.replace(task_source="my_tasks.py"), cfg.replace(cost="tip")]
+    keys = {program_key(c) for c in other}
+    assert len(keys) == len(other) and program_key(cfg) not in keys
+    sim = Resimulator()
+    for c in [cfg, *same[:2], other[0]]:
+        sim._program(c)
+    assert len(sim._programs) == 2
 
 
 def test_resimulation_at_another_noise_level_changes_only_the_noise_scale(tmp_path, capsys):

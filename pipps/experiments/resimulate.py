@@ -32,6 +32,36 @@ def policy_unraveler(cfg, problem):
     return ravel_pytree(init_policy(jax.random.PRNGKey(0), cfg, problem))[1]
 
 
+# Settings that steer only the learning (which policy gets found), never the true system, the
+# policy's structure or the success rule a stored policy is judged by: re-simulation programs are
+# shared across them. Every other setting keys a program (the initial policy's too, which could
+# change its structure), so a task whose factory reads a setting this module does not know of (a
+# user task's ``success`` reading ``success_threshold``, say) gets a program of its own.
+LEARNING_ONLY = frozenset({
+    "method", "seed", "num_random", "num_learned", "eval_rollouts", "num_particles", "policy_evals",
+    "learning_rate", "momentum", "estimator_choices", "noise_boost_tp", "noise_boost_gtp", "progress_chunk", "variance_tol",
+    "pilco_linesearches", "pilco_policy_noise", "gp_chunk", "gp_max_iters", "fitc_threshold",
+    "num_inducing", "fitc_iters", "fitc_first_iters", "store_particles",
+})
+
+
+def program_key(cfg) -> tuple:
+    """What a compiled re-simulation program depends on: every setting of ``cfg`` outside
+    :data:`LEARNING_ONLY`, with the cost by name (``None`` and the preset's default cost are one)."""
+    import dataclasses
+
+    def hashable(v):
+        try:
+            hash(v)
+            return v
+        except TypeError:
+            return repr(v)
+
+    fields = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg) if f.name not in LEARNING_ONLY}
+    fields["cost"] = cfg.cost_name
+    return tuple(sorted((name, hashable(v)) for name, v in fields.items()))
+
+
 class Resimulator:
     """Re-runs stored policies on the true system: a trial's own evaluation rollouts (same keys, so
     the returns must match the stored ones to rounding) or ``fresh`` independent ones. One compiled
@@ -51,8 +81,7 @@ class Resimulator:
         if balance is not None:  # the cart-pole's criterion under other bounds
             steps, angle, position = balance
             cfg = cfg.replace(balance_steps=steps, balance_angle=angle, balance_position=position)
-        bounds = (cfg.balance_steps, cfg.balance_angle, cfg.balance_position)
-        key = (cfg.task, cfg.preset, cfg.k, cfg.cost_name, cfg.cost_scale, cfg.horizon, cfg.policy, cfg.num_basis, bounds)
+        key = program_key(cfg)
         if key not in self._programs:
             task = make_experiment_task(cfg)
             unravel = policy_unraveler(cfg, task.problem)
