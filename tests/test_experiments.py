@@ -398,8 +398,16 @@ def test_exact_gp_capacities_change_only_the_rounding(tiny_result):
     assert [t.gp.capacity for t in exact.trials[1:]] == [30]
     assert [t.gp.capacity for t in padded.trials[1:]] == [100]
     for ta, tb in zip(padded.trials, exact.trials):
-        for name in ("states", "actions", "eval_returns", "policy"):
-            np.testing.assert_allclose(getattr(ta, name), getattr(tb, name), rtol=1e-7, atol=1e-9, err_msg=name)
+        np.testing.assert_allclose(ta.policy, tb.policy, rtol=1e-7, atol=1e-9, err_msg="policy")
+        # the true-system trials follow those policies through a swing-up, which magnifies a policy
+        # difference: bound each by the policies' own difference times a growth factor of 10⁴ for
+        # the rollout (measured: states differ by 61× the policies' largest difference). A bound
+        # relative to the policy difference follows the rounding of whatever CPU runs it; a fixed
+        # rtol did not (1.6e-7 at one state on an AVX-512 machine).
+        scale = max(1e-16, float(np.max(np.abs(np.asarray(ta.policy) - np.asarray(tb.policy)))))
+        for name in ("states", "actions", "eval_returns"):
+            np.testing.assert_allclose(getattr(ta, name), getattr(tb, name), rtol=0,
+                                       atol=max(1e-9, 1e4 * scale), err_msg=name)
     for name in ("log_lengthscale", "log_signal", "log_noise"):
         np.testing.assert_allclose(getattr(padded.trials[1].gp, name), getattr(exact.trials[1].gp, name), rtol=1e-7)
 
