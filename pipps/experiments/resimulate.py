@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipps.experiments.config import COMPUTATIONAL
+
 
 def evaluation_keys(cfg, index: int):
     """The keys of trial ``index``'s evaluation rollouts, as the learning loop draws them
@@ -37,29 +39,22 @@ def policy_unraveler(cfg, problem):
 # shared across them. Every other setting keys a program (the initial policy's too, which could
 # change its structure), so a task whose factory reads a setting this module does not know of (a
 # user task's ``success`` reading ``success_threshold``, say) gets a program of its own.
-LEARNING_ONLY = frozenset({
+LEARNING_ONLY = frozenset(COMPUTATIONAL) | {
     "method", "seed", "num_random", "num_learned", "eval_rollouts", "num_particles", "policy_evals",
-    "learning_rate", "momentum", "estimator_choices", "noise_boost_tp", "noise_boost_gtp", "progress_chunk", "variance_tol",
-    "pilco_linesearches", "pilco_policy_noise", "gp_chunk", "gp_max_iters", "fitc_threshold",
+    "learning_rate", "momentum", "estimator_choices", "noise_boost_tp", "noise_boost_gtp",
+    "variance_tol", "pilco_linesearches", "pilco_policy_noise", "gp_max_iters", "fitc_threshold",
     "num_inducing", "fitc_iters", "fitc_first_iters", "store_particles",
-})
+}
 
 
 def program_key(cfg) -> tuple:
-    """What a compiled re-simulation program depends on: every setting of ``cfg`` outside
-    :data:`LEARNING_ONLY`, with the cost by name (``None`` and the preset's default cost are one)."""
+    """What a compiled re-simulation program depends on: every setting of ``cfg`` (a frozen, hashable
+    configuration) outside :data:`LEARNING_ONLY`, with the cost by name (``None`` and the preset's
+    default cost are one)."""
     import dataclasses
 
-    def hashable(v):
-        try:
-            hash(v)
-            return v
-        except TypeError:
-            return repr(v)
-
-    fields = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg) if f.name not in LEARNING_ONLY}
-    fields["cost"] = cfg.cost_name
-    return tuple(sorted((name, hashable(v)) for name, v in fields.items()))
+    return tuple((f.name, cfg.cost_name if f.name == "cost" else getattr(cfg, f.name))
+                 for f in dataclasses.fields(cfg) if f.name not in LEARNING_ONLY)
 
 
 class Resimulator:
