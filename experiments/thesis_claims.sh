@@ -63,6 +63,10 @@ queue=(
   "--table 4.2 --k 1 --methods pilco --seeds 10"
   "--table 4.2 --k 1 --methods tp,gr --seeds 10"
   "--table 4.3 --k 1 --methods gtp,glr --seeds 10"
+  # beyond the 5 seeds: group 4 to 10 (about 2 core-hours per unicycle run), PILCO and TP
+  # first, the pair that decides claim 4
+  "--table 4.4 --methods pilco,tp --seeds 10"
+  "--table 4.4 --methods rp,lr --seeds 10"
 )
 worker() {
   local core=$1 q
