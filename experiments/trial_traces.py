@@ -1,6 +1,8 @@
-"""Per learned trial of particle-method result files: the true return against the model's objective at
-the last policy step, the median gradient norm, TP's k_LR averaged over time steps and policy steps
-(NaN for a method without it), non-finite and skipped steps, the fraction of the trial's evaluation
+"""Per learned trial of result files: the true return against the model's objective at the last
+policy step, the median gradient norm, TP's k_LR averaged over time steps and policy steps (NaN for a
+method without it), non-finite and skipped steps (for PILCO and the fixed-seed methods, whose
+quasi-Newton search has no gradient steps: its objective at the end, the number of line searches and
+how many failed), the fraction of the trial's evaluation
 rollouts meeting the task's success criterion, and, on the cart-pole, where the recorded rollout left the
 pole and the cart (docs/results.md, the flat-cost plateaus of k = 16 TP seed 2 and k = 9 TP seed 17;
 docs/estimator-variance.md, the library's and the thesis' k_LR rules while learning).
@@ -140,10 +142,14 @@ def main(argv=None) -> None:
             flags = final_flags(result.config, t)
             where = (f"  max |θ| {np.abs(states[:, 3]).max():.2f}  cart end {states[-1, 0]:.1f} m" if cartpole else "")
             met = "" if flags is None else f"  criterion met {np.mean(flags):.2f}"
-            print(f"  trial {t.index:03d}: return {t.eval_return:.2f}  model {float(trace.particle_objective[-1]):.2f}  "
-                  f"median |grad| {np.median(trace.grad_norm):.2g}  mean k_LR {_mean(t.diagnostics.k_lr):.3f}  "
-                  f"non-finite {int(np.sum(t.diagnostics.nonfinite_steps))}  skipped {int(np.sum(trace.skipped))}"
-                  f"{met}{where}")
+            if hasattr(trace, "grad_norm"):  # a stochastic-gradient search (the particle methods)
+                search = (f"model {float(trace.particle_objective[-1]):.2f}  "
+                          f"median |grad| {np.median(trace.grad_norm):.2g}  mean k_LR {_mean(t.diagnostics.k_lr):.3f}  "
+                          f"non-finite {int(np.sum(t.diagnostics.nonfinite_steps))}  skipped {int(np.sum(trace.skipped))}")
+            else:  # a quasi-Newton search (PILCO, the fixed-seed methods): its own objective at the end
+                search = (f"model {float(trace.value[-1]):.2f}  line searches {len(trace.value)}  "
+                          f"failed {int(np.sum(trace.failed))}")
+            print(f"  trial {t.index:03d}: return {t.eval_return:.2f}  {search}{met}{where}")
 
 
 if __name__ == "__main__":

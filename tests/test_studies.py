@@ -310,3 +310,27 @@ def test_mardias_statistics_tell_a_gaussian_from_a_uniform_and_a_skewed_marginal
     assert abs(float(kurt) - 0.8) < tol
     _, skew = script.mardia(jax.random.exponential(k[2], (P, D)))
     assert float(skew) > 100 * D * (D + 1) * (D + 2) / P
+
+
+def test_trial_traces_reads_quasi_newton_files_and_prices_the_return_the_tables_count(capsys):
+    """experiments/trial_traces.py on a PILCO file (a line-search trace, no gradient steps): it must not
+    fail, and its "model" column must be PILCO's predicted return over steps 1..T, the steps the true
+    return counts — the stored moment prediction's cost_mean[1:].sum(), not its sum over 0..T, which
+    adds the start's cost (1 on the cart-pole's Tip Cost) and made docs quote 8.0 for a 7.0."""
+    import importlib.util
+
+    from pipps.experiments.results import read_result
+
+    path = Path(__file__).resolve().parents[1] / "experiments/trial_traces.py"
+    spec = importlib.util.spec_from_file_location("trial_traces", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    run = Path(__file__).resolve().parents[1] / "results/thesis/cartpole_swingup_tip_k1_pilco_thesis_s0.h5"
+    script.main([str(run)])
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  trial 015:")]
+    assert len(lines) == 1 and "line searches" in lines[0]
+    model = float(lines[0].split("model ")[1].split()[0])
+    final = read_result(run, verify=False).trials[-1]
+    cost = np.asarray(final.predicted.cost_mean)
+    assert abs(model - cost[1:].sum()) < 0.005  # printed to 2 decimals
+    assert abs(cost[0] - 1.0) < 0.01 and abs(model - cost.sum()) > 0.9

@@ -123,7 +123,7 @@ class ParticlePrediction:
     """The first ``store_particles`` predicted trajectories of the optimised policy on the model."""
 
     particles: np.ndarray = array()  # (T+1, S_p, D)
-    cost_mean: np.ndarray = array()  # (T,)
+    cost_mean: np.ndarray = array()  # (T,): steps 1..T, summing to the predicted return
     extra: dict[str, Any] = extra()
 
 
@@ -133,7 +133,7 @@ class MomentPrediction:
 
     mean: np.ndarray = array()  # (T+1, D)
     cov: np.ndarray = array()  # (T+1, D, D)
-    cost_mean: np.ndarray = array()  # (T+1,)
+    cost_mean: np.ndarray = array()  # (T+1,): steps 0..T; the predicted return is cost_mean[1:].sum()
     extra: dict[str, Any] = extra()
 
 
