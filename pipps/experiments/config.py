@@ -11,7 +11,7 @@ Presets:
 * ``thesis`` — the thesis protocol (§4.5.3): 1 + 15 trials (cart-pole) or 5 + 30 (unicycle),
   P = 300 particles, 600 policy evaluations per trial, the normalized momentum step
   (α = 5·10⁻⁴, γ = 0.9), 50-centre RBF policy with centres at the start mean plus N(0, I) (the
-  author's demo; the start distribution itself does not learn, docs/results.md), the thesis'
+  author's demo; the start distribution itself does not learn, docs/results-analyses.md), the thesis'
   own estimator choices (eq. 4.3 baseline, same-batch k_LR), 30 evaluation rollouts.
 * ``pilco`` — the PILCO MATLAB task defaults (docs/task-cartpole.md, docs/task-unicycle.md) with the library's estimator
   choices (unbiased baselines; TP's leave-one-out k_LR).
@@ -302,7 +302,7 @@ def preset_values(preset: str, task) -> dict[str, Any]:
     The thesis preset spreads the RBF centres as the start mean plus N(0, I) (``centre_std = 1``):
     the one departure from drawing the centres from the start distribution
     (N(0, 0.1²I), as PILCO does), which barely learns; the author's demo spreads them so. Evidence in
-    docs/results.md ("Why the thesis preset spreads the centres"); ``--set centre_std=none``
+    docs/results-analyses.md ("Why the thesis preset spreads the RBF centres"); ``--set centre_std=none``
     restores the start distribution."""
     if preset not in PRESET_NAMES:
         raise ConfigError(f"preset: unknown preset {preset!r}; choose one of {', '.join(PRESET_NAMES)}")
