@@ -254,12 +254,12 @@ def test_snapshot_of_a_fitc_trial_reproduces_its_stored_prediction(tmp_path):
     np.testing.assert_allclose(pred["particles"], stored.predicted.particles, rtol=1e-9, atol=1e-9)
 
 
-def _alignment_script():
-    """experiments/del_gradient_alignment.py as a module (a script, not part of the package)."""
+def _experiment_script(name: str):
+    """experiments/NAME.py as a module (a script, not part of the package)."""
     import importlib.util
 
-    path = Path(__file__).resolve().parents[1] / "experiments/del_gradient_alignment.py"
-    spec = importlib.util.spec_from_file_location("del_gradient_alignment", path)
+    path = Path(__file__).resolve().parents[1] / f"experiments/{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     return script
@@ -270,7 +270,7 @@ def test_the_del_alignment_script_measures_each_reading_against_the_reference(ca
     (balancing; every estimator points down the gradient there), the library's TP, the reference's own
     estimator at fewer particles, must point along the reference, and each row must count its
     finite estimates. A wrong reference, sign or projection would break the first row's numbers."""
-    script = _alignment_script()
+    script = _experiment_script("del_gradient_alignment")
     run = Path(__file__).resolve().parents[1] / "results/thesis/cartpole_balance_angle_k1_del_thesis_s0.h5"
     with pytest.raises(SystemExit):
         script.main([str(run), "--trial", "1", "--readings", "del:nonsense"])
@@ -292,12 +292,7 @@ def test_mardias_statistics_tell_a_gaussian_from_a_uniform_and_a_skewed_marginal
     (1.8·D + D(D−1)) / (D(D+2)) = 0.8 for independent standardised uniforms in D = 4 (E z⁴ = 1.8);
     skewness b₁ is about D(D+1)(D+2)/P for a Gaussian and far above it for exponentials.
     Tolerances: five standard errors of b₂/(D(D+2)), √(8 / (D(D+2)P)) for a Gaussian."""
-    import importlib.util
-
-    path = Path(__file__).resolve().parents[1] / "experiments/del_marginal_shape.py"
-    spec = importlib.util.spec_from_file_location("del_marginal_shape", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = _experiment_script("del_marginal_shape")
     from pipps.precision import enable_float64
 
     enable_float64()
@@ -317,14 +312,9 @@ def test_trial_traces_reads_quasi_newton_files_and_prices_the_return_the_tables_
     fail, and its "model" column must be PILCO's predicted return over steps 1..T, the steps the true
     return counts — the stored moment prediction's cost_mean[1:].sum(), not its sum over 0..T, which
     adds the start's cost (1 on the cart-pole's Tip Cost) and made docs quote 8.0 for a 7.0."""
-    import importlib.util
-
     from pipps.experiments.results import read_result
 
-    path = Path(__file__).resolve().parents[1] / "experiments/trial_traces.py"
-    spec = importlib.util.spec_from_file_location("trial_traces", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = _experiment_script("trial_traces")
     run = Path(__file__).resolve().parents[1] / "results/thesis/cartpole_swingup_tip_k1_pilco_thesis_s0.h5"
     script.main([str(run)])
     lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  trial 015:")]
