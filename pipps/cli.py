@@ -315,6 +315,21 @@ def build_parser() -> argparse.ArgumentParser:
 
     st = sub.add_parser("study", help="gradient studies on a policy snapshot from a result file (docs/gradients.md)")
     studies = st.add_subparsers(dest="study", required=True)
+    from pipps.studies.contact_catalog import STUDIES as CONTACT_STUDIES, estimated_minutes
+
+    ct = studies.add_parser("contact", help="first-, zeroth- and α-order gradients on contact (Suh et al.; docs/contact.md)",
+                            description="Runs one of Suh et al.'s examples with its sweep and writes a JSON result "
+                                        "(tables, verdicts) and its figure. Quick by default (minutes); --full gives "
+                                        "the numbers in docs/contact.md.")
+    ct.add_argument("example", choices=CONTACT_STUDIES,
+                    help="; ".join(f"{n}: about {q:g} min quick, {f:g} min full" for n, (q, f) in estimated_minutes().items()))
+    ct.add_argument("--full", action="store_true", help="the full sweep of docs/contact.md (longer: see the choices)")
+    ct.add_argument("--seed", type=_seed, default=0)
+    ct.add_argument("--out", default=None, type=opt.file_name(".json"),
+                    help="JSON output (default: contact_EXAMPLE.json); an existing file is kept unless --overwrite")
+    ct.add_argument("--svg", default=None, type=opt.file_name(".svg"), help="the figure as SVG (default: --out with .svg)")
+    ct.add_argument("--rrd", default=None, type=opt.file_name(".rrd"), help="the figure as a rerun recording (default: none)")
+    ct.add_argument("--overwrite", action="store_true", help="replace existing output files (never an experiment result)")
     for name, text in (("landscape", "objective and each estimator's gradient along θ + Δ·d (thesis Fig. 4.2)"),
                        ("variance", "gradient variance against the number of particles (thesis Fig. 4.13)")):
         p = studies.add_parser(name, help=text)
@@ -1071,8 +1086,40 @@ def _snapshot(args, particles: int, estimators):
     return snap
 
 
+def _cmd_contact(args) -> int:
+    from pathlib import Path
+
+    from pipps.experiments.storage import check_new_file, publish
+    from pipps.studies import contact, contact_figures, contact_studies
+    from pipps.studies.contact_catalog import estimated_minutes
+
+    out = args.out or f"contact_{args.example}.json"
+    svg = args.svg or str(Path(out).with_suffix(".svg"))
+    outputs = [(out, "--out", ".json"), (svg, "--svg", ".svg")] + ([(args.rrd, "--rrd", ".rrd")] if args.rrd else [])
+    for path, option, suffix in outputs:
+        check_new_file(path, overwrite=args.overwrite, option=option, suffix=suffix, command="pipps study contact")
+    quick, full = estimated_minutes()[args.example]
+    print(f"pipps study contact {args.example}: {'full' if args.full else 'quick'} sweep, about "
+          f"{full if args.full else quick:g} min on one core of the machine docs/contact.md was measured on", file=sys.stderr)
+    import jax
+
+    result = contact_studies.run_study(args.example, jax.random.PRNGKey(args.seed), full=args.full)
+    result.settings["seed"] = args.seed
+    with publish(out, overwrite=args.overwrite, command="pipps study contact") as tmp:
+        contact.write_study(tmp, result)
+    for path, _, _ in outputs[1:]:
+        with publish(path, overwrite=args.overwrite, command="pipps study contact") as tmp:
+            contact_figures.record(result, tmp)
+    print(contact_figures.verdict_table(result))
+    print(f"\nwrote {', '.join(p for p, _, _ in outputs)}")
+    return 0
+
+
 def _cmd_study(args) -> int:
     import numpy as np
+
+    if args.study == "contact":
+        return _cmd_contact(args)
 
     from pipps.cli_report import study_caveat
     from pipps.experiments.results import ResultError

@@ -153,7 +153,26 @@ class LinearPolicy:
         return _scaled(self.u_max, saturate(self.unsquashed(v)))
 
 
-Policy = RBFPolicy | PilcoRBFPolicy | LinearPolicy
+@register_dataclass
+@dataclasses.dataclass(frozen=True)
+class OpenLoopPolicy:
+    """An open-loop action sequence: ``θ = actions`` (T, F), and ``u = actions[t]`` where the policy
+    input is the step index ``t`` (the first input component, rounded and clipped to [0, T−1]).
+
+    The decision variables of a trajectory optimisation, or with ``T = 1`` a constant action —
+    the one-step problems ``f(θ + w)`` of Suh et al. (:mod:`pipps.systems.contact`), whose state
+    carries its step index for this policy to read.
+    """
+
+    actions: jax.Array  # (T, F)
+
+    def __call__(self, v: jax.Array) -> jax.Array:
+        T = self.actions.shape[0]
+        t = jnp.clip(jnp.round(v[0]).astype(jnp.int32), 0, T - 1)
+        return self.actions[t]
+
+
+Policy = RBFPolicy | PilcoRBFPolicy | LinearPolicy | OpenLoopPolicy
 
 
 #: per policy type, each array field's shape in terms of its sizes: "n" centres, "D" policy-input

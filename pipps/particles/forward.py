@@ -1,4 +1,10 @@
-"""Particle predictions through the learned model (thesis Algorithm 3; GR, thesis §4.3.1).
+"""Particle predictions through the learned model (thesis Algorithm 3; GR, thesis §4.3.1), and
+through a known simulator with noise on the actions (:mod:`pipps.particles.simulator`).
+
+Where the noise enters is a setting of :class:`RolloutConfig`: on the state (the thesis: the model's
+Gaussian over the next state, below) or, with ``action_noise``, on the actions
+(``u = π(x̃[P]) + σ_u w``, Suh et al.'s setting; the model is then a known simulator
+``x' = step(x, u)``). :func:`particle_rollout` and :func:`sample_noise` serve both.
 
 P particles through T steps of policy → model → sample, as one ``lax.scan`` over time with
 the particles vectorised. Step ``t`` (0-based, ``t = 0..T−1``) maps ``x_t`` to
@@ -44,6 +50,12 @@ class RolloutConfig:
       resample_jitter: added to the diagonal of the GR covariance before its Cholesky.
       variance_precision: "float64" or "float32", the precision of the GP variance's
         O(P·E·M²) product (:func:`pipps.particles.models.model_output`).
+      action_noise: None (the thesis: the noise is the model's, on the state), or σ_u > 0, one
+        number or one per action component: the actions are ``u = π(x̃[P]) + σ_u ⊙ w``,
+        ``w ~ N(0, I)``, and the model is a known simulator (:mod:`pipps.particles.simulator`).
+      state_noise: with ``action_noise``, the standard deviation of Gaussian noise added to the
+        simulator's next state (0: none; one number or one per state component). A GP model's
+        state noise is its own σ_n (scaled by ``noise_multiplier``), so it takes no state_noise.
     """
 
     num_particles: int = 300
@@ -53,6 +65,8 @@ class RolloutConfig:
     resampling: str = "none"
     resample_jitter: float = 1e-10
     variance_precision: str = "float64"
+    action_noise: float | tuple[float, ...] | None = None
+    state_noise: float | tuple[float, ...] = 0.0
 
     def __post_init__(self):
         if int(self.num_particles) < 2:
@@ -65,9 +79,33 @@ class RolloutConfig:
             raise ValueError(f"resampling must be one of {RESAMPLING}, got {self.resampling!r}")
         if self.variance_precision not in PRECISIONS:
             raise ValueError(f"variance_precision must be one of {PRECISIONS}, got {self.variance_precision!r}")
+        if self.action_noise is not None:
+            object.__setattr__(self, "action_noise", _stds("action_noise", self.action_noise, positive=True))
+            if self.resampling != "none":
+                raise ValueError("resampling refits the state particles of a model's Gaussian; with action_noise the "
+                                 "state is the simulator's, so resampling must be 'none'")
+        object.__setattr__(self, "state_noise", _stds("state_noise", self.state_noise, positive=False))
+        if self.action_noise is None and any(self.state_noise):
+            raise ValueError("state_noise is the known simulator's (with action_noise); a model's state noise is its "
+                             "own sigma_n, scaled by noise_multiplier")
+
+    @property
+    def noise_on_actions(self) -> bool:
+        """The noise enters at the actions (a known simulator), not at the model's next state."""
+        return self.action_noise is not None
 
     def steps(self, task: Problem) -> int:
         return task.horizon if self.horizon is None else int(self.horizon)
+
+
+def _stds(name: str, value, *, positive: bool) -> tuple[float, ...]:
+    """Standard deviations as a tuple of floats (hashable: the configuration is a jit static argument)."""
+    values = tuple(float(v) for v in (value if isinstance(value, (tuple, list)) else (value,)))
+    low = (lambda v: v > 0) if positive else (lambda v: v >= 0)
+    if not values or not all(low(v) and v < float("inf") for v in values):
+        bound = "> 0" if positive else ">= 0"
+        raise ValueError(f"{name} must be finite and {bound} (one number or one per component), got {value!r}")
+    return values
 
 
 class ParticleRecord(NamedTuple):
@@ -82,6 +120,7 @@ class ParticleRecord(NamedTuple):
     cost: jax.Array  # (T, P) c(x_{t+1})
     jac_mean: jax.Array | None  # (T, P, D, Dz) ∂μ_{t+1}/∂z_t (the x_t in μ = x_t + m is not included)
     jac_std: jax.Array | None  # (T, P, D, Dz) ∂s_{t+1}/∂z_t; None under −σ_f (s does not depend on z)
+    nominal_cost: jax.Array | None = None  # (T, P) c of each particle's zero-noise rollout, where a baseline reads it
 
     @property
     def objective(self) -> jax.Array:
@@ -90,14 +129,26 @@ class ParticleRecord(NamedTuple):
 
 
 class Noise(NamedTuple):
-    """The random numbers of one rollout: the start particles and the per-step ε."""
+    """The random numbers of one rollout: the start particles and the per-step ε.
+
+    With noise on the actions, ``eps`` is the actions' standardised noise ``w`` (T, P, F) and
+    ``state_eps`` the simulator state's (T, P, D), or None without state noise."""
 
     x0: jax.Array  # (P, D)
-    eps: jax.Array  # (T, P, D)
+    eps: jax.Array  # (T, P, D), or (T, P, F) with noise on the actions
+    state_eps: jax.Array | None = None  # (T, P, D) with noise on the actions and the state
+
+    def without_noise(self) -> Noise:
+        """The same start particles with every later noise zero: the zero-noise rollouts."""
+        return Noise(self.x0, jnp.zeros_like(self.eps), None if self.state_eps is None else jnp.zeros_like(self.state_eps))
 
 
 def sample_noise(key: jax.Array, task: Problem, config: RolloutConfig) -> Noise:
     """Draw x_0 ~ N(μ0^x, Σ0^x) and ε ~ N(0, I). Reusing the key gives the fixed-seed variant."""
+    if config.noise_on_actions:
+        from pipps.particles.simulator import sample_action_noise
+
+        return sample_action_noise(key, task, config)
     k0, ke = jax.random.split(key)
     P, T, D = config.num_particles, config.steps(task), task.model_dim
     x0 = jax.random.multivariate_normal(
@@ -155,8 +206,14 @@ def particle_rollout(task: Problem, policy, model, noise: Noise, config: Rollout
     """Algorithm 3: all particles through all steps, one scan over time.
 
     ``jacobian`` (static) records the model's input Jacobians for the custom backward pass;
-    a forward-only evaluation sets it False.
+    a forward-only evaluation sets it False. With ``config.action_noise`` the model is a known
+    simulator and the record an :class:`~pipps.particles.simulator.ActionRecord`
+    (:func:`pipps.particles.simulator.action_rollout`).
     """
+    if config.noise_on_actions:
+        from pipps.particles.simulator import action_rollout
+
+        return action_rollout(task, policy, model, noise, config, jacobian=jacobian)
     if task.model_dim != noise.x0.shape[-1]:
         raise ValueError(f"noise has state dimension {noise.x0.shape[-1]}, task has {task.model_dim}")
     check_policy(policy, task.policy_input_dim, task.action_dim)

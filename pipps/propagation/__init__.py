@@ -2,7 +2,7 @@
 
 from pipps.propagation.estimators import ESTIMATORS, Estimator, compose, estimator, thesis_estimator
 from pipps.propagation.fixed_seed import optimize_fixed_seed
-from pipps.propagation.estimate import Estimate, estimate, init_estimator_state
+from pipps.propagation.estimate import Estimate, estimate, estimate_on, init_estimator_state, rollout_for
 from pipps.propagation.pieces import EstimatorState, StepDiagnostics
 from pipps.propagation.schedules import cross_fitted
 from pipps.propagation.update import (
@@ -16,6 +16,6 @@ from pipps.propagation.update import (
 
 __all__ = [
     "ESTIMATORS", "Estimate", "Estimator", "EstimatorState", "PolicyOptState", "StepDiagnostics", "UpdateInfo",
-    "compose", "cross_fitted", "estimate", "estimator", "init_estimator_state", "init_policy_opt_state",
-    "make_policy_optimizer", "make_policy_update", "optimize_fixed_seed", "policy_update", "thesis_estimator",
+    "compose", "cross_fitted", "estimate", "estimate_on", "estimator", "init_estimator_state", "init_policy_opt_state",
+    "make_policy_optimizer", "make_policy_update", "optimize_fixed_seed", "policy_update", "rollout_for", "thesis_estimator",
 ]

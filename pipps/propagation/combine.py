@@ -242,7 +242,7 @@ class ActionNodes(_WeighsTwoParts):
 
         stack = jnp.stack([only_state(ct_rp), only_state(ct_lr), jnp.zeros_like(ct_rp).at[:, -n_u:].set(u_mix)])
         g, cx = parts.pull_back(stack)
-        m_rp, m_lr = cx[0] + parts.zeta[0].mean, cx[1] + parts.zeta[1].mean
+        m_rp, m_lr = parts.message(0, cx[0]), parts.message(1, cx[1])
         path_state, (k_s, k_s_batch, _, _) = self._weights(jax.tree.map(lambda a: a[0], state), m_rp, m_lr)
         k_s = k_s[:, None] if k_s.ndim == 1 else k_s
         message = mix(k_s, m_lr, m_rp) + cx[2]

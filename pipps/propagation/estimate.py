@@ -7,6 +7,10 @@ rollout and the estimator's sweep schedule, and returns the next
 ``(state, info)``: the state is what the next call needs — each piece's own — the estimate is what
 you use and log). Every function is pure, so ``jax.jit`` and ``jax.vmap`` over a leading axis of
 seeds (keys, states, policies and models) work.
+
+The ``model`` is a learned dynamics model (the thesis' setting: the noise on the next state), or,
+with ``config.action_noise``, a known simulator with ``step(x, u)`` (noise on the actions,
+:mod:`pipps.particles.simulator`); the estimator and its pieces are the same.
 """
 
 from __future__ import annotations
@@ -67,10 +71,36 @@ def estimate(
 ) -> tuple[EstimatorState, Estimate]:
     """The next state; and the objective, gradient estimate, V[g] and per-step diagnostics."""
     require_float64("pipps.propagation.estimate")
-    if config.resampling == "gaussian" and estimator.likelihood_ratio:
-        raise ValueError("Gaussian resampling (GR) is a pathwise method; use it with the 'rp' estimator")
+    record = rollout_for(key, policy, model, problem=problem, config=config, estimators=(estimator,))
+    return estimate_on(record, state, policy, problem=problem, config=config, estimator=estimator)
+
+
+def rollout_for(key: jax.Array, policy, model, *, problem: Problem, config: RolloutConfig, estimators) -> Any:
+    """The particle record every estimator in ``estimators`` can sweep: the rollout from ``key``'s
+    noise, with the model's (or simulator's) Jacobians where one needs them and each particle's
+    zero-noise rollout where a baseline reads it. Several estimators swept on one record see the
+    same particles (common random numbers) and share its cost."""
+    for est in estimators:
+        if config.resampling == "gaussian" and est.likelihood_ratio:
+            raise ValueError("Gaussian resampling (GR) is a pathwise method; use it with the 'rp' estimator")
     noise = sample_noise(key, problem, config)
-    record = particle_rollout(problem, policy, model, noise, config, jacobian=True)
+    # the thesis' sweep maps every part through the model's Jacobians; at the action node only a
+    # pathwise part reads the simulator's (module doc of pipps.particles.simulator)
+    pathwise = any(est.pathwise for est in estimators)
+    record = particle_rollout(problem, policy, model, noise, config, jacobian=pathwise or not config.noise_on_actions)
+    if any(est.reads_nominal for est in estimators):  # the zero-noise baseline: each particle's start, no noise
+        nominal = particle_rollout(problem, policy, model, noise.without_noise(), config, jacobian=False)
+        record = record._replace(nominal_cost=nominal.cost)
+    return record
+
+
+def estimate_on(record, state: EstimatorState, policy, *, problem: Problem, config: RolloutConfig,
+                estimator: Estimator) -> tuple[EstimatorState, Estimate]:
+    """:func:`estimate` on a given record (:func:`rollout_for`): the estimator's sweep schedule and the
+    mean of the particles' contributions."""
+    require_float64("pipps.propagation.estimate_on")
+    if estimator.reads_nominal and record.nominal_cost is None:
+        raise ValueError("this estimator's baseline is the zero-noise rollout: make the record with rollout_for")
     state, out = estimator.schedule.sweep(problem, policy, record, config, estimator, state)
     contrib = out.contributions
     P = contrib.shape[0]

@@ -27,7 +27,13 @@ from __future__ import annotations
 import dataclasses
 
 from pipps.propagation.combine import COMBINERS, action_nodes, inverse_variance, robust, single
-from pipps.propagation.cost_terms import DensityEstimationCosts, density_estimation_costs, plain_costs, shaped_costs
+from pipps.propagation.cost_terms import (
+    DensityEstimationCosts,
+    PlainCosts,
+    density_estimation_costs,
+    plain_costs,
+    shaped_costs,
+)
 from pipps.propagation.lr import WEIGHTINGS
 from pipps.propagation.parts import BiwLR, DensityLR, PlainLR, biw_lr, density_lr, pathwise, plain_lr
 from pipps.propagation.pieces import (
@@ -59,6 +65,9 @@ def _composition_problem(costs, parts, combiner, schedule) -> str | None:
     if LIKELIHOOD_RATIO in kinds and not costs.feeds_likelihood_ratio:
         return ("density-estimation cost terms replace the pathwise cost gradient (DEL, thesis §3.3.1): "
                 "compose them with a lone pathwise part")
+    if any(isinstance(p, PlainLR) and p.returns == "total" for p in parts) and not isinstance(costs, PlainCosts):
+        return ("plain LR with returns='total' weighs each score by the particle's whole cost Σ_t c_t; "
+                "shaped or density-estimation cost terms change what the returns hold: use returns='to_go'")
     if len(parts) == 2 and any(isinstance(p, DensityLR) for p in parts):
         return ("DEL's LR part estimates the gradient through the particles' fitted density, not each particle's "
                 "own; total propagation does not weigh it against a pathwise part: compose it alone")
@@ -101,6 +110,12 @@ class Estimator:
     @property
     def likelihood_ratio(self) -> bool:
         return LIKELIHOOD_RATIO in self.kinds
+
+    @property
+    def reads_nominal(self) -> bool:
+        """A part's baseline is each particle's zero-noise rollout (Suh et al. §II.B): the estimate makes
+        that rollout too."""
+        return any(r.startswith("nominal") for p in self.parts for r in getattr(p, "reads", ()))
 
     @property
     def fits_density(self) -> bool:
@@ -188,6 +203,17 @@ ESTIMATORS: dict[str, NamedEstimator] = {e.name: e for e in (
                    "taken to θ through each step's own controls",
                    compose(plain_costs(), density_lr()), compose(density_estimation_costs(), pathwise()),
                    "the fit's derivative down the whole pathwise chain (counts a cost once per earlier step)"),
+    NamedEstimator("zobg", "ZoBG", (227, 119, 194),
+                   "Suh et al.'s zeroth-order batched gradient (their Definition II.1): plain LR weighing every step's "
+                   "score by the whole return, less each particle's zero-noise rollout (their §II.B); the RP part "
+                   "of the same comparison is `rp`, their FoBG",
+                   compose(plain_costs(), plain_lr("zero_noise", "total"))),
+    NamedEstimator("aobg", "AoBG", (255, 187, 120),
+                   "Suh et al.'s robust interpolation of FoBG (RP) and ZoBG at each step: the inverse-variance "
+                   "weight, capped so that ε + α‖ḡ_RP − ḡ_LR‖ ≤ γ (`robust_gamma`, default 1: set it to the "
+                   "gradient error your problem tolerates), from this batch",
+                   compose(plain_costs(), pathwise(), plain_lr("zero_noise", "total"),
+                           combiner=robust(gamma=1.0, z=2.0, k_lr="batch"))),
     NamedEstimator("del_cost", "DEL_c", (0, 110, 110),
                    "DEL with each step's own cost as the weight, the fit's derivative down the whole pathwise chain "
                    "(the LR identity of each step's marginal; a third reading of thesis §3.3.1)",
@@ -196,7 +222,7 @@ ESTIMATORS: dict[str, NamedEstimator] = {e.name: e for e in (
 
 NAMED = tuple(ESTIMATORS)
 
-SETTINGS = ("weighting", "baseline", "k_lr", "combiner", "robust_gamma", "robust_z", "messages")
+SETTINGS = ("weighting", "baseline", "returns", "k_lr", "combiner", "robust_gamma", "robust_z", "messages")
 _COMBINER_SETTINGS = ("k_lr", "combiner", "robust_gamma", "robust_z", "messages")
 _COMBINER_FACTORIES = {"inverse_variance": inverse_variance, "robust": robust, "action_nodes": action_nodes}
 CROSS_FIT = "cross_fit"  # k_lr="cross_fit": the cross-fitted schedule (schedules.cross_fitted), not a weight source
@@ -228,7 +254,7 @@ def _rebaselined(name: str, costs, parts: tuple, baseline: str):
     if any(isinstance(p, BiwLR) for p in parts):
         return costs, tuple(biw_lr(baseline) if isinstance(p, BiwLR) else p for p in parts)
     if any(isinstance(p, PlainLR) for p in parts):
-        raise ValueError(f"baseline: plain LR always uses the leave-one-out mean, so {name!r} takes none")
+        return costs, tuple(plain_lr(baseline, p.returns) if isinstance(p, PlainLR) else p for p in parts)
     raise ValueError(f"baseline applies to BIW-LR or DEL, and {name!r} has neither")
 
 
@@ -266,6 +292,11 @@ def with_settings(name: str, est: Estimator, **settings) -> Estimator:
         parts = _reweighted(name, parts, settings["weighting"])
     if "baseline" in settings:
         costs, parts = _rebaselined(name, costs, parts, settings["baseline"])
+    if "returns" in settings:
+        if not any(isinstance(p, PlainLR) for p in parts):
+            raise ValueError(f"returns: the whole return (Suh et al.'s ZoBG) weighs a plain LR part, and {name!r} has "
+                             "none (weighting='plain' gives one)")
+        parts = tuple(plain_lr(p.baseline, settings["returns"]) if isinstance(p, PlainLR) else p for p in parts)
     combining = {k: settings[k] for k in _COMBINER_SETTINGS if k in settings}
     if combining:
         combiner = _recombined(name, combiner, len(parts), combining)

@@ -25,6 +25,12 @@ import jax.numpy as jnp
 
 WEIGHTINGS = ("biw", "plain")
 BASELINES = ("previous", "thesis", "none")
+#: plain LR's baselines: the leave-one-out mean (exactly unbiased), each particle's zero-noise rollout
+#: (Suh et al. §II.B; unbiased: it depends on the particle's start only), or none
+PLAIN_BASELINES = ("leave_one_out", "zero_noise", "none")
+#: what plain LR weighs step t's score by: the return-to-go ``G_{i,t}`` or the whole return ``V_i``
+#: (Suh et al.'s ZoBG, Definition II.1); both unbiased, the return-to-go has less variance
+RETURNS = ("to_go", "total")
 
 
 class ZetaGrad(NamedTuple):
@@ -98,11 +104,16 @@ def score_weighted(coef: jax.Array, x: jax.Array, mean: jax.Array, std: jax.Arra
 
 
 def plain_lr(x: jax.Array, mean: jax.Array, std: jax.Array, returns: jax.Array) -> ZetaGrad:
-    """Plain LR with the leave-one-out baseline: γ_i = (G_i − b_i) ∇_{ζ_i} log p(x_i | ζ_i).
+    """Plain LR with the leave-one-out baseline: γ_i = (G_i − b_i) ∇_{ζ_i} log p(x_i | ζ_i)."""
+    return own_score(returns - leave_one_out_mean(returns), x, mean, std)
+
+
+def own_score(advantage: jax.Array, x: jax.Array, mean: jax.Array, std: jax.Array) -> ZetaGrad:
+    """γ_i = A_i ∇_{ζ_i} log p(x_i | ζ_i) for advantages A (P,): each sample scored under its own component.
 
     Uses the standardised noise directly: ``(x − μ)/s² = ε/s`` and ``((x−μ)² − s²)/s³ = (ε² − 1)/s``.
     """
-    adv = (returns - leave_one_out_mean(returns))[:, None]
+    adv = advantage[:, None]
     eps = (x - mean) / std
     return ZetaGrad(adv * eps / std, adv * (eps**2 - 1.0) / std)
 

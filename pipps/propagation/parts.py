@@ -7,7 +7,8 @@ A part is a strategy piece with a ``kind`` and ``zeta(state, inputs, config) -> 
   Gaussian resampling the VJP of the resampling. It reads the carried x-cotangent, so the sweep
   pulls x-cotangents back only when a pathwise part is present.
 * :func:`biw_lr` (BIW-LR, thesis eq. 4.2–4.3) with its baseline, "previous", "thesis" or "none".
-* :func:`plain_lr`: no batch weighting, the leave-one-out baseline.
+* :func:`plain_lr`: no batch weighting, the leave-one-out baseline (or the zero-noise rollout's, or
+  none), weighing each step's score by the return-to-go or by the whole return (Suh et al.'s ZoBG).
 * :func:`density_lr` (DEL, thesis §3.3.1): the LR gradient of a Gaussian ``q_t`` fitted to the
   particles, ``γ_j = a_j ∂x_{j,t}/∂ζ_{j,t}`` with ``a_j = P·∂S_t/∂x_{j,t}`` and
   ``S_t = (1/P) Σ_i (G_{i,t} − b_t) log q_t(x_{i,t})``, the samples in ``log q_t`` held fixed. Like
@@ -60,6 +61,7 @@ class BiwLR(PreviousBaseline):
     baseline: str = "previous"
 
     kind = LIKELIHOOD_RATIO
+    needs_state_sample = True  # G_j must depend on the sample alone (the thesis' node), not on the state before it
 
     def zeta(self, state, inputs: StepInputs, config: RolloutConfig) -> tuple[MeanReturn | tuple, ZetaGrad]:
         del config
@@ -72,13 +74,41 @@ class BiwLR(PreviousBaseline):
 
 @strategy
 class PlainLR(Stateless):
-    """LR without batch weighting, with the leave-one-out baseline (exactly unbiased)."""
+    """LR without batch weighting: each sample scored under its own distribution.
+
+    ``returns``: "to_go" weighs step t's score by the return-to-go ``G_{i,t}`` (the default), "total"
+    by the whole return ``V_i`` (Suh et al.'s ZoBG, Definition II.1). ``baseline``: "leave_one_out"
+    (the mean of the other particles' values; the default), "zero_noise" (the particle's rollout from
+    its own start without noise, Suh et al. §II.B) or "none". Every combination is exactly unbiased.
+    """
+
+    baseline: str = "leave_one_out"
+    returns: str = "to_go"
 
     kind = LIKELIHOOD_RATIO
 
+    @property
+    def reads(self) -> tuple[str, ...]:
+        """The sweep inputs beyond ``G_{i,t}`` this part reads (:class:`~pipps.propagation.pieces.StepInputs`)."""
+        total = self.returns == "total"
+        own = ("total_returns",) if total else ()
+        if self.baseline == "zero_noise":
+            own += ("nominal_total_returns",) if total else ("nominal_returns",)
+        return own
+
     def zeta(self, state, inputs: StepInputs, config: RolloutConfig) -> tuple[tuple, ZetaGrad]:
         del config
-        return state, lr.plain_lr(inputs.x, inputs.mean, inputs.std, inputs.returns)
+        if self.baseline == "leave_one_out" and self.returns == "to_go":
+            return state, lr.plain_lr(inputs.x, inputs.mean, inputs.std, inputs.returns)
+        total = self.returns == "total"
+        values = inputs.total_returns if total else inputs.returns
+        if self.baseline == "leave_one_out":
+            baseline = lr.leave_one_out_mean(values)
+        elif self.baseline == "zero_noise":
+            baseline = inputs.nominal_total_returns if total else inputs.nominal_returns
+        else:
+            baseline = 0.0
+        return state, lr.own_score(values - baseline, inputs.x, inputs.mean, inputs.std)
 
 
 @strategy
@@ -92,6 +122,7 @@ class DensityLR(PreviousBaseline):
 
     kind = LIKELIHOOD_RATIO
     fits_density = True  # a Gaussian fitted to the particles at every step
+    needs_state_sample = True  # the fitted density is the marginal of the next state
 
     def zeta(self, state, inputs: StepInputs, config: RolloutConfig) -> tuple[MeanReturn | tuple, ZetaGrad]:
         b, next_state = self.previous_baseline(state, inputs.returns)
@@ -111,9 +142,14 @@ def biw_lr(baseline: str = "previous") -> BiwLR:
     return BiwLR(baseline)
 
 
-def plain_lr() -> PlainLR:
-    """The plain-LR part."""
-    return PlainLR()
+def plain_lr(baseline: str = "leave_one_out", returns: str = "to_go") -> PlainLR:
+    """The plain-LR part (:class:`PlainLR`): ``baseline`` "leave_one_out", "zero_noise" or "none";
+    ``returns`` "to_go" or "total"."""
+    if baseline not in lr.PLAIN_BASELINES:
+        raise ValueError(f"plain LR's baseline must be one of {lr.PLAIN_BASELINES}, got {baseline!r}")
+    if returns not in lr.RETURNS:
+        raise ValueError(f"returns must be one of {lr.RETURNS}, got {returns!r}")
+    return PlainLR(baseline, returns)
 
 
 def density_lr(baseline: str = "previous") -> DensityLR:

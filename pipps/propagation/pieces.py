@@ -105,15 +105,21 @@ class StepCosts(NamedTuple):
 
 
 class StepInputs(NamedTuple):
-    """What a gradient part reads at step t of the sweep, per particle."""
+    """What a gradient part reads at step t of the sweep, per particle.
 
-    x: jax.Array  # x_{i,t}, (P, D)
-    mean: jax.Array  # μ_{i,t}, (P, D)
-    std: jax.Array  # s_{i,t}, (P, D)
-    eps: jax.Array  # ε_{i,t}, (P, D)
+    The sample is the step's sampled node: the next state ``x_{i,t}`` (the thesis; D components) or,
+    with noise on the actions, the action ``u_{i,t}`` (F components), whose ζ is ``(π(x̃[P]), σ_u)``."""
+
+    x: jax.Array  # the sample x_{i,t}, (P, D)
+    mean: jax.Array  # its mean μ_{i,t}, (P, D)
+    std: jax.Array  # its standard deviation s_{i,t}, (P, D)
+    eps: jax.Array  # its standardised noise ε_{i,t}, (P, D)
     returns: jax.Array  # G_{i,t}, (P,)
-    carried: jax.Array  # ∂G_i/∂x_{i,t} passed back from step t+1, (P, D)
-    cost_gradient: jax.Array | None  # the cost terms' ∂c_i/∂x_i, (P, D)
+    carried: jax.Array  # ∂G_i/∂(sample) passed back from step t+1, (P, D)
+    cost_gradient: jax.Array | None  # the cost terms' ∂c_i/∂(sample), (P, D)
+    total_returns: jax.Array | None = None  # V_i = Σ_t c_{i,t}, (P,), where a part reads it (``reads``)
+    nominal_returns: jax.Array | None = None  # the zero-noise rollout's return-to-go from t, (P,), where read
+    nominal_total_returns: jax.Array | None = None  # the zero-noise rollout's whole return, (P,), where read
 
 
 class PartCotangents(NamedTuple):
@@ -123,12 +129,20 @@ class PartCotangents(NamedTuple):
     z: jax.Array  # (K, P, Dz) each part's cotangent on the GP input z = [x̃[I]; u], u last
     num_actions: int  # the last num_actions entries of z are the action u_{t−1} (static)
     pull_back: Callable  # (K', P, Dz) z-cotangents → (θ-cotangents (K', P, n_θ), x-cotangents (K', P, D) or None)
+    direct: jax.Array | None = None  # (P, D) the message's path that bypasses ζ, the same for every part; None: γ_μ
+
+    def message(self, i: int, cx: jax.Array) -> jax.Array:
+        """Part ``i``'s message to the previous state from its pulled-back x-cotangent ``cx``: plus the
+        path that bypasses ζ — at the thesis' node ``γ_μ`` (``μ = x + m_Δ`` holds the state itself), at
+        the action node the simulator's direct path ``(∂x'/∂x)ᵀ ∂G/∂x'`` (``direct``)."""
+        return cx + (self.zeta[i].mean if self.direct is None else self.direct)
 
     def gradients_and_messages(self):
         """Every part pulled back at once: θ-gradients (K, P, n_θ) and, where a pathwise part reads
-        them, the messages ``∂G/∂x_{i,t−1} = (∂z/∂x)ᵀ c_z + γ_μ`` of each part (else None)."""
+        them, the messages ``∂G/∂x_{i,t−1} = (∂z/∂x)ᵀ c_z + γ_μ`` of each part (else None; at the action
+        node the direct path in place of γ_μ, :meth:`message`)."""
         g, cx = self.pull_back(self.z)
-        messages = None if cx is None else [cx[i] + gam.mean for i, gam in enumerate(self.zeta)]
+        messages = None if cx is None else [self.message(i, cx[i]) for i in range(len(self.zeta))]
         return g, messages
 
 

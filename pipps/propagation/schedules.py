@@ -61,7 +61,7 @@ class OneSweep:
 
 
 def _halves(record: ParticleRecord) -> ParticleRecord:
-    """(T, P, ...) fields → (2, T, P/2, ...): half 0 the first P/2 particles, half 1 the rest."""
+    """(T, P, ...) fields → (2, T, P/2, ...): half 0 the first P/2 particles, half 1 the rest (any record type)."""
 
     def split(a):
         if a is None:
@@ -69,7 +69,7 @@ def _halves(record: ParticleRecord) -> ParticleRecord:
         T, P = a.shape[:2]
         return jnp.moveaxis(a.reshape(T, 2, P // 2, *a.shape[2:]), 1, 0)
 
-    return ParticleRecord(*(split(a) for a in record))
+    return type(record)(*(split(a) for a in record))
 
 
 def _over_halves(a: jax.Array) -> jax.Array:
