@@ -33,7 +33,7 @@ from pipps.systems.linear_actions import exact_objective, reference_system
 
 SIGMA_U, SIGMA_X = 0.3, 0.1
 CFG = RolloutConfig(num_particles=30, action_noise=SIGMA_U, state_noise=SIGMA_X)
-R = 1500
+R = 600
 N_THETA = 8  # W (2, 3) and b (2,)
 
 UNBIASED = {

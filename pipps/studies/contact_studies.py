@@ -61,6 +61,15 @@ def _tension_rows(system: str, summaries: dict, gamma: float) -> list[dict]:
     return rows
 
 
+def _variance_between(system: str, summ: dict) -> dict:
+    """000's "the variance of AoBG is between FoBG and ZoBG", read on one system's summaries."""
+    v = {n: summ[n]["expected_variance"] for n in ("FoBG", "ZoBG", "AoBG")}
+    lo, hi = sorted((v["FoBG"], v["ZoBG"]))
+    return _verdict(f"{system}: AoBG's variance lies between FoBG's and ZoBG's (000, robust-interpolation results)",
+                    lo <= v["AoBG"] <= hi, ", ".join(f"{n} {x:.3g}" for n, x in v.items()),
+                    "expected per-sample variance (trace) of each estimator over the batches")
+
+
 def _lemma_coverage(reps: dict, exact: np.ndarray, gamma: float, z: float, N: int) -> dict:
     """Lemma 4.3's event on the batches where its premise can hold: ε = z·sqrt(tr Σ̂_LR/N) ≤ γ (the
     ZoBG's own confidence radius within the bound; elsewhere AoBG is ZoBG and promises nothing). Returns
@@ -114,6 +123,7 @@ def heaviside_study(key, *, thetas, samples, replicates, sigma=1.0, gamma=0.2, z
                  f"coverage {worst['coverage']:.3f} at its lowest (θ index {coverage.index(worst)}, {worst['feasible']} "
                  f"feasible batches), {max(c['coverage'] for c in covered):.3f} at its highest",
                  "among batches with ε ≤ γ, the fraction with ‖ĝ_AoBG − ∇F‖ ≤ γ, against δ less 3 binomial SEs"),
+        _variance_between(f"heaviside at θ = {near['theta']:.3g}", near),
     ]
     return StudyResult("heaviside", dict(thetas=thetas, samples=samples, replicates=replicates, sigma=sigma, gamma=gamma),
                        dict(grid=rows, tension=tension, verdicts=verdicts, aobg_coverage=coverage))
@@ -195,6 +205,7 @@ def fig1_study(key, *, thetas, samples, replicates, iterations, descents) -> Stu
         reps = replicate_estimates(ex0, ests, samples, max(replicates, 100), jax.random.fold_in(key, 100 * pi + 99))
         summ = {n: summarise(s, np.array([dF0]), samples) for n, s in reps.items()}
         tension += _tension_rows(name, summ, gamma)
+        verdicts.append(_variance_between(f"{name} at θ = {base.scalar_of(ex0.policy):.3g}", summ))
         runs = {n: [descend(ex0, est, iterations=iterations, num_samples=samples, step=step,
                             key=jax.random.fold_in(key, 7000 + 100 * pi + d)).tolist() for d in range(descents)]
                 for n, est in ests.items()}
@@ -287,6 +298,7 @@ def pushing_study(key, *, stiffness, kappas, samples, replicates, gamma=1.0) -> 
                  f"{max(r['FoBG']['expected_variance'] for r in stable):.3g}", "implicit below the stiffest stable penalty"),
     ]
     base_row = min(stable, key=lambda r: abs(math.log(r["stiffness"] / 1e3))) if stable else rows[0]
+    verdicts.append(_variance_between(f"pushing, penalty k = {base_row.get('stiffness', 0):g}", base_row))
     tension = _tension_rows(f"pushing, penalty k = {base_row.get('stiffness', 0):g}", {n: base_row[n] for n in ests}, gamma)
     return StudyResult("pushing", dict(stiffness=list(stiffness), kappas=list(kappas), samples=samples,
                                        replicates=replicates, gamma=gamma),
