@@ -57,10 +57,12 @@ BEFORE = {
     "gtp+sn": ("gtp", True, "noise_boost_gtp", "none", MOMENTUM),
     "del": ("del", True, None, "none", MOMENTUM),
     "del-cost": ("del_cost", True, None, "none", MOMENTUM),
+    # a composition, the same under either estimator_choices: the thesis TP with the robust combiner
+    "tp-robust": (thesis_estimator("tp", combiner="robust", robust_gamma=1.0, robust_z=2.0), True, None, "none", MOMENTUM),
 }
 LABELS = {"pilco": "PILCO", "rp": "RP", "rp_fs": "RP_FS", "gr": "GR", "gr_fs": "GR_FS", "lr": "LR", "tp": "TP",
           "tp-sf": "TP−σ_f", "tp+sn": "TP+σ_n", "gtp": "GTP", "glr": "GLR", "gtp+sn": "GTP+σ_n", "del": "DEL",
-          "del-cost": "DEL_c"}
+          "del-cost": "DEL_c", "tp-robust": "TP_robust"}
 FIELDS = {f.name for f in dataclasses.fields(ExperimentConfig)}
 
 
@@ -84,7 +86,10 @@ def test_every_method_resolves_and_builds_what_it_names(name, choices):
             method_estimator(spec, choices)
         return
     rollout, est = particle_method(cfg.replace(estimator_choices=choices))
-    assert est == (thesis_estimator(est_name) if choices == "thesis" else estimator(est_name))
+    if not isinstance(est_name, str):
+        assert est == est_name
+    else:
+        assert est == (thesis_estimator(est_name) if choices == "thesis" else estimator(est_name))
     assert (rollout.num_particles, rollout.horizon) == (cfg.num_particles, cfg.horizon)
     assert rollout.model_variance == variance and rollout.resampling == resampling
     assert rollout.noise_multiplier == (getattr(cfg, boost) if boost else 1.0)

@@ -31,13 +31,18 @@ PUBLIC = (
     "pipps.rollout",
     "pipps.gp",
     "pipps.particles",
+    "pipps.particles.simulator",
     "pipps.propagation",
     "pipps.optimizers",
     "pipps.pilco",
     "pipps.experiments",
     "pipps.reporting",
     "pipps.studies",
+    "pipps.studies.contact",
+    "pipps.studies.contact_studies",
     "pipps.systems",
+    "pipps.systems.linear_actions",
+    "pipps.systems.contact",
 )
 
 

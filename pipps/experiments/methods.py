@@ -23,6 +23,7 @@ tp+sn      TP+σ_n      TP with σ_n² × ``noise_boost_tp`` (thesis: 100)
 gtp, glr   GTP, GLR    Gaussian-shaped TP and LR (thesis §3.3.2, Alg. 6)
 gtp+sn     GTP+σ_n     GTP with σ_n² × ``noise_boost_gtp`` (thesis: 25)
 del        DEL         density-estimation LR (thesis §3.3.1)
+tp-robust  TP_robust   the thesis' TP with Suh et al.'s robust (AoBG) weight, γ = 1 (beyond the thesis)
 =========  ==========  ============================================================================
 
 With ``estimator_choices="thesis"`` the LR parts use the thesis' eq. 4.3 baseline and TP its
@@ -153,6 +154,15 @@ def _choices_matter(name_or_estimator) -> bool:
     return thesis_estimator(name_or_estimator) != estimator(name_or_estimator)
 
 
+def _robust_tp():
+    """The thesis' TP (eq. 4.3 baseline, this batch's weight) with the robust combiner, γ = 1, z = 2: the
+    bound that the thesis preset's TP snapshots put at a middle scale (docs/contact.md, "Through the
+    learning loop")."""
+    from pipps.propagation.estimators import thesis_estimator
+
+    return thesis_estimator("tp", combiner="robust", robust_gamma=1.0, robust_z=2.0)
+
+
 def _particle_method(name, label, colour, estimator, description, optimizer=MOMENTUM, **rollout) -> Method:
     return Method(name, label, colour, optimizer, Particles(**rollout), estimator, description)
 
@@ -181,6 +191,9 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     _particle_method("del", "DEL", (0, 0, 0), "del", "density-estimation LR"),
     _particle_method("del-cost", "DEL_c", (0, 110, 110), "del_cost",
                      "density-estimation LR weighted by each step's own cost, down the whole pathwise chain"),
+    _particle_method("tp-robust", "TP_robust", (255, 187, 120), _robust_tp(),
+                     "the thesis' TP with Suh et al.'s robust weight (AoBG's bound γ = 1, z = 2) in place of the "
+                     "inverse-variance one"),
 )}
 
 #: The settings some methods use and others do not: those of each optimiser and particle rollout,

@@ -96,6 +96,16 @@ def _extra() -> Table:
     return Table("q001", "Angle Cost with Q × 0.01 (thesis §4.5.4 text)", "cartpole_swingup", (row,), ("pilco", "tp"), cells)
 
 
+def _robust() -> Table:
+    """Suh et al.'s robust weight inside the thesis' TP on Table 4.1's k = 1 cell, TP beside it (no thesis
+    value: the thesis has no such method; docs/contact.md, "Through the learning loop")."""
+    row = "Angle, k = 1"
+    cells = (Cell(row, "tp-robust", (("cost", "angle"), ("k", 1.0)), None),
+             Cell(row, "tp", (("cost", "angle"), ("k", 1.0)), 0.99))
+    return Table("robust", "TP with the robust (AoBG) weight, Table 4.1's k = 1 cell, TP beside it", "cartpole_swingup",
+                 (row,), ("tp-robust", "tp"), cells)
+
+
 def _del() -> Table:
     """DEL on cart-pole balancing, TP beside it on the same task (the thesis reports DEL's rate only as
     "non-trivial" and draws both learning curves, Fig. 4.17a); DEL_c, DEL weighted by each step's own
@@ -117,6 +127,7 @@ TABLES: dict[str, Table] = {
                  tuple(Cell("unicycle", m, (), v) for m, v in zip(_T44_METHODS, _T44)), row_in_titles=False),
     "q001": _extra(),
     "del": _del(),
+    "robust": _robust(),
 }
 
 
