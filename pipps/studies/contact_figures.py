@@ -197,7 +197,7 @@ def pushing_figure(r: StudyResult) -> tuple:
     kap = [k for k in f6 if k.startswith("barrier")]
     shades = {k: ch.lighter(colour("AoBG"), 0.6 * i / max(len(kap) - 1, 1)) for i, k in enumerate(kap)}
     keys = [ch.Key(label("FoBG"), colour("FoBG")), ch.Key(label("ZoBG"), colour("ZoBG")),
-            ch.Key("undamped stability bound 4m_r/h²", ch.GREY, "dash"), ch.Key("implicit (QP) step", ch.BLACK),
+            ch.Key("the step's stability bound (4 − 2hc/m_r) m_r/h²", ch.GREY, "dash"), ch.Key("implicit (QP) step", ch.BLACK),
             ch.Key("penalty step (k = 100)", ch.GREY)] + [ch.Key(k.replace("barrier_kappa", "barrier κ = "), shades[k]) for k in kap]
     fig = ch.figure(charts, 3, keys)
 

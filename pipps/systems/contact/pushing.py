@@ -8,8 +8,9 @@ A pusher (mass ``m1``, position ``x1``, velocity ``v1``) driven by a force ``u``
 
 * ``"penalty"`` (Example III.7): a spring of stiffness ``k`` and damping ``c`` acts while the two
   overlap, ``f = max(0, k·max(0, −g) + c·(v1 − v2))·1[g < 0]``, integrated semi-implicitly
-  (``v ← v + h a``, then ``x ← x + h v``). Stiff contact needs large ``k``; the integrator is stable
-  while ``h² k / m_r ≲ 4`` (``m_r = m1 m2/(m1 + m2)``; 2·10⁴ at the defaults) and blows up beyond.
+  (``v ← v + h a``, then ``x ← x + h v``). Stiff contact needs large ``k``; in contact the step is
+  stable while ``h² k / m_r < 4 − 2hc/m_r`` (``m_r = m1 m2/(m1 + m2)``; k < 1.98·10⁴ at the defaults)
+  and amplifies each contact oscillation beyond.
 * ``"implicit"`` (Example IV.1, two bodies): the time-stepping QP
   ``min ½ m1 (v1⁺ − v1)² + ½ m2 (v2⁺ − v2)² − h u v1⁺`` s.t. ``g/h + v2⁺ − v1⁺ ≥ 0``, whose
   solution is closed form: with the free velocities ``v1' = v1 + h u/m1``, ``v2' = v2`` and
@@ -83,10 +84,11 @@ class Pushing:
 
     @property
     def stable_stiffness(self) -> float:
-        """The penalty spring's largest stiffness the semi-implicit step keeps stable without damping,
-        ``4 m_r / h²``."""
+        """The penalty spring's largest stiffness the semi-implicit step keeps stable in contact,
+        ``(4 − 2hc/m_r) m_r / h²`` (the damped oscillator's semi-implicit Euler map has its eigenvalues
+        inside the unit circle below it; ``4 m_r/h²`` without damping). Needs a float damping."""
         m_r = self.m1 * self.m2 / (self.m1 + self.m2)
-        return 4.0 * m_r / self.h**2
+        return (4.0 - 2.0 * self.h * float(self.damping) / m_r) * m_r / self.h**2
 
 
 @dataclasses.dataclass(frozen=True)
