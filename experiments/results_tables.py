@@ -142,6 +142,54 @@ if glance:
     blocks["readme"] = glance_table([r for r in glance if r["method"] in README_METHODS
                                      and not (r["method"] == "RP" and "k = 1" not in r["cell"])
                                      and not r["cell"].startswith("Cart-pole balancing")])
+def coverage_blocks():
+    """Every distinct cell of Tables 4.1–4.4 (a cell of Table 4.3 that is also one of Table 4.1 or 4.2
+    once), its thesis value and every reading of our runs, or "no runs"; and the count of cells with
+    runs by their number of seeds, for the README."""
+    from pipps.experiments.methods import METHODS
+    from pipps.reporting.tables import TABLES
+
+    outputs = {"4.1": t41, **{n: outs[n] for n in ("4.2", "4.3", "4.4")}}
+    found = {}
+    for name, out in outputs.items():
+        for r in every_reading_rows(out, ""):
+            found[(name, r["cell"], r["method"])] = r
+    cells, where = {}, {}
+    for name in ("4.1", "4.2", "4.3", "4.4"):
+        t = TABLES[name]
+        for c in t.cells:
+            v = dict(c.values)
+            key = (t.task, v.get("cost", "default"), v.get("k", 1.0), c.method)
+            cells.setdefault(key, (name, c))
+            where.setdefault(key, []).append(name)
+    head = ["cell", "method", "seeds", "thesis", *GLANCE_READINGS]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    counts = {"10+": 0, "5-9": 0, "1-4": 0, "none": 0}
+    for key, (name, c) in cells.items():
+        label = METHODS[c.method].label
+        row = next((found[(n, c.row, label)] for n in where[key] if (n, c.row, label) in found), None)
+        tables = " and ".join(f"Table {n}" for n in where[key])
+        thesis = f"{c.thesis:.2f}"
+        if row is None:
+            counts["none"] += 1
+            lines.append(f"| {tables}, {c.row} | {label} | 0 | {thesis} | no runs |" + " |" * (len(GLANCE_READINGS) - 1))
+            continue
+        seeds = int(row.get("seeds", "0") or 0)
+        counts["10+" if seeds >= 10 else "5-9" if seeds >= 5 else "1-4"] += 1
+        headline = row.get(GLANCE_READINGS[0], "–")
+        headline = row.get(GLANCE_READINGS[3], "–") if headline == "–" else headline
+        mark = " !" if outside(thesis, headline) else ""
+        lines.append(f"| {tables}, {c.row} | {label} | {seeds} | {thesis}{mark} | "
+                     + " | ".join(row.get(h, "–") for h in GLANCE_READINGS) + " |")
+    total = len(cells)
+    have = total - counts["none"]
+    summary = (f"{have} of the {total} distinct cells of Tables 4.1–4.4 have runs: {counts['10+']} at 10 or more seeds, "
+               f"{counts['5-9']} at 5–9, {counts['1-4']} at 1–4; {counts['none']} have none yet "
+               "(docs/results.md, \"Every cell\", lists them all).")
+    return lines, [summary]
+
+
+blocks["coverage"], blocks["coverage-count"] = coverage_blocks()
 filled = []
 for page in (PAGE, README):
     if page == README and not (os.path.exists(page) and "<!-- pipps:" in open(page).read()):

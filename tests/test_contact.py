@@ -149,3 +149,23 @@ def test_mjx_ball_gradient_in_free_flight_equals_analytic_and_finite_differences
     h = 1e-6
     fd = (float(final_x(u + h)) - float(final_x(u - h))) / (2 * h)
     assert fd == pytest.approx(dx, rel=1e-6)
+
+
+def test_a_study_writes_its_verdicts_and_figure_and_never_replaces_a_file(tmp_path, capsys):
+    from pipps.cli import main
+    from pipps.studies import contact, contact_figures, contact_studies
+
+    r = contact_studies.run_study("heaviside", thetas=3, samples=10, replicates=8)
+    claims = [v["verdict"] for v in r.tables["verdicts"]]
+    assert len(claims) == 5 and set(claims) <= {"supported", "contradicted", "cannot tell"}
+    assert claims[0] == "supported"  # FoBG is exactly 0: true at any size
+    out = tmp_path / "h.json"
+    contact.write_study(out, r)
+    back = contact.read_study(out)
+    assert back.tables["verdicts"] == r.tables["verdicts"] and back.versions["code"]
+    svg = contact_figures.record(back, tmp_path / "h.svg").read_text()
+    assert "ZoBG (plain LR, whole return)" in svg and "AoBG (robust, bound γ)" in svg
+    assert "| FoBG ≡ 0" in contact_figures.verdict_table(back)
+    # the command refuses an existing output before any work
+    assert main(["study", "contact", "heaviside", "--out", str(out)]) == 2
+    assert "--overwrite" in capsys.readouterr().err

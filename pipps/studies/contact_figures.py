@@ -34,13 +34,15 @@ def _keys(extra=()):
 
 
 def _estimates(rec, c, x, rows, names=NAMES, dodge=0.0):
+    """Each estimator's mean through the points at their true x; its ±2 SE bars dodged sideways by
+    ``dodge`` per estimator so that bars at one x do not hide each other."""
     for i, n in enumerate(names):
         m = np.array([r[n]["mean"][0] for r in rows])
         se = np.array([r[n]["se"][0] for r in rows])
+        ch.line(rec, c, f"{n}/mean", x, m, colour(n))
+        ch.points(rec, c, f"{n}/points", x, m, colour(n), size=2.0)
         xs = np.asarray(x) + (i - 1.5) * dodge
-        ch.line(rec, c, f"{n}/mean", xs, m, colour(n))
-        ch.points(rec, c, f"{n}/points", xs, m, colour(n), size=2.5)
-        ch.intervals(rec, c, f"{n}/se", xs, m - 2 * se, m + 2 * se, colour(n), cap=2.0)
+        ch.intervals(rec, c, f"{n}/se", xs, m - 2 * se, m + 2 * se, colour(n), cap=1.5)
 
 
 def _log_values(rows, key, names=NAMES):
@@ -71,10 +73,11 @@ def heaviside_figure(r: StudyResult) -> tuple:
 
         ch.line(rec, a, "F", fine, stats.norm.cdf(fine / r.settings["sigma"]), ch.BLACK, width=1.6)
         ch.line(rec, b, "exact", th, [x["dF"] for x in rows], ch.BLACK, width=1.6)
-        _estimates(rec, b, th, rows, dodge=0.02 * (th.max() - th.min()))
+        _estimates(rec, b, th, rows, dodge=0.004 * (th.max() - th.min()))
+        ch.note(rec, b, "fobg_zero", "FoBG and TP coincide at 0", row=1)
         for n in NAMES:
             ch.line(rec, c, n, th, [x[n]["empirical_variance"] for x in rows], colour(n))
-        ch.note(rec, c, "fobg_zero", "FoBG and TP: every estimate 0, empirical variance 0")
+        ch.note(rec, c, "fobg_zero", "FoBG and TP: empirical variance exactly 0", row=1)
 
     return fig, draw
 
@@ -145,7 +148,7 @@ def fig1_figure(r: StudyResult) -> tuple:
             ch.line(rec, a, "f", th, [x["f"] for x in g], ch.GREY)
             ch.line(rec, a, "F", th, [x["F"] for x in g], ch.BLACK, width=1.6)
             ch.line(rec, b, "exact", th, [x["dF"] for x in g], ch.BLACK, width=1.6)
-            _estimates(rec, b, th, g, dodge=0.01 * (th.max() - th.min()))
+            _estimates(rec, b, th, g, dodge=0.004 * (th.max() - th.min()))
             for e, runs in r.tables[n]["descent"].items():
                 for i, run in enumerate(runs):
                     run = np.asarray(run)
@@ -173,7 +176,7 @@ def ball_figure(r: StudyResult) -> tuple:
             ref, se = np.array([x["reference"][0] for x in g]), np.array([x["reference_se"][0] for x in g])
             ch.line(rec, c, "reference", th, ref, ch.GREY, width=1.6)
             ch.intervals(rec, c, "reference_se", th, ref - 2 * se, ref + 2 * se, ch.GREY)
-            _estimates(rec, c, th, g, dodge=0.08)
+            _estimates(rec, c, th, g, dodge=0.05)
 
     return fig, draw
 
@@ -195,9 +198,10 @@ def pushing_figure(r: StudyResult) -> tuple:
                  ch.Axis("x⁺", *ch.data_range([v for k, v in f6.items() if k != "u"])), PANEL),
     ]
     kap = [k for k in f6 if k.startswith("barrier")]
-    shades = {k: ch.lighter(colour("AoBG"), 0.6 * i / max(len(kap) - 1, 1)) for i, k in enumerate(kap)}
+    navy = (20, 40, 90)  # not an estimator's colour: these are contact models, not estimates
+    shades = {k: ch.lighter(navy, 0.65 * i / max(len(kap) - 1, 1)) for i, k in enumerate(kap)}
     keys = [ch.Key(label("FoBG"), colour("FoBG")), ch.Key(label("ZoBG"), colour("ZoBG")),
-            ch.Key("the step's stability bound (4 − 2hc/m_r) m_r/h²", ch.GREY, "dash"), ch.Key("implicit (QP) step", ch.BLACK),
+            ch.Key("the step's stability bound (4 − 2hc/m_r) m_r/h²", ch.GREY, "dash"), ch.Key("implicit (QP) step", ch.BLACK, "dash"),
             ch.Key("penalty step (k = 100)", ch.GREY)] + [ch.Key(k.replace("barrier_kappa", "barrier κ = "), shades[k]) for k in kap]
     fig = ch.figure(charts, 3, keys)
 
@@ -214,10 +218,10 @@ def pushing_figure(r: StudyResult) -> tuple:
 
         bound = Pushing().stable_stiffness
         ch.line(rec, a, "bound", [bound, bound], [a.y.lo, a.y.hi], ch.GREY, dash=True)
-        ch.line(rec, c, "implicit", f6["u"], f6["implicit"], ch.BLACK, width=1.6)
         ch.line(rec, c, "penalty", f6["u"], f6["penalty"], ch.GREY)
         for k in kap:
             ch.line(rec, c, k, f6["u"], f6[k], shades[k])
+        ch.line(rec, c, "implicit", f6["u"], f6["implicit"], ch.BLACK, width=1.0, dash=True, order=12.0)
 
     return fig, draw
 
