@@ -225,9 +225,13 @@ def fig1_study(key, *, thetas, samples, replicates, iterations, descents) -> Stu
                                  summ["FoBG"]["max_z"] > z_bound(3, ALPHA) and summ["ZoBG"]["max_z"] < z_bound(3, ALPHA),
                                  f"at θ = {base.scalar_of(ex0.policy):.3g}: FoBG |z| {summ['FoBG']['max_z']:.1f}, ZoBG |z| "
                                  f"{summ['ZoBG']['max_z']:.2f} (∇F = {dF0:.3g})", "|bias|/SE against the Bonferroni bound"))
-        verdicts.append(_verdict(f"{name}: a descent with FoBG ends worse than with ZoBG", finals["FoBG"] > finals["ZoBG"],
-                                 "final F: " + ", ".join(f"{n} {v:.4g}" for n, v in finals.items()),
-                                 f"mean exact F after {iterations} iterations over {descents} runs (lower is better)"))
+        a, b = (np.array([r[-1][1] for r in runs[n]]) for n in ("FoBG", "ZoBG"))
+        se = math.sqrt(np.var(a, ddof=1) / len(a) + np.var(b, ddof=1) / len(b)) if len(a) > 1 else float("nan")
+        d = float(a.mean() - b.mean())
+        verdicts.append(_verdict(f"{name}: a descent with FoBG ends worse than with ZoBG",
+                                 None if not math.isfinite(se) else (True if d > 2 * se else False if d < -2 * se else None),
+                                 "final F: " + ", ".join(f"{n} {v:.4g}" for n, v in finals.items()) + f"; FoBG − ZoBG {d:+.3g} ± {se:.2g}",
+                                 f"exact F after {iterations} iterations over {descents} runs (lower is better); a difference counts at 2 SE"))
     return StudyResult("fig1", dict(thetas=thetas, samples=samples, replicates=replicates, iterations=iterations,
                                     descents=descents), dict(**tables, tension=tension, verdicts=verdicts))
 
@@ -345,26 +349,44 @@ def scaling_study(key, *, stiffness, iterations, samples, seeds, policy_iteratio
                         key=jax.random.fold_in(key, 50000 + 10 * s + list(ests).index(n)), evaluate=evaluate)
                 for s in range(seeds)]
         pol.append(dict(estimator=n, curves=[r.tolist() for r in runs], final=float(np.mean([r[-1, 1] for r in runs]))))
-    final = {(r["stiffness"], r["estimator"]): r["final"] for r in traj}
-    gap = {(k, n): final[(k, n)] - min(final[(k, m)] for m in ests) for k in stiffness for n in ests}  # behind the best
+    runs_of = {(r["stiffness"], r["estimator"]): np.array([c[-1][1] for c in r["curves"]]) for r in traj}
+    final = {k: float(v.mean()) for k, v in runs_of.items()}
+    pruns = {r["estimator"]: np.array([c[-1][1] for c in r["curves"]]) for r in pol}
+    pmean = {r["estimator"]: np.array([np.mean(np.asarray(c)[:, 1]) for c in r["curves"]]) for r in pol}
     soft, stiff = min(stiffness), max(stiffness)
-    pfinal = {r["estimator"]: r["final"] for r in pol}
-    runs = f"mean final cost over {seeds} runs of {iterations} iterations, less the best estimator's at the same k"
+
+    def worse(a, b):  # mean(a) − mean(b) and its standard error over the independent runs
+        se = math.sqrt(np.var(a, ddof=1) / len(a) + np.var(b, ddof=1) / len(b)) if len(a) > 1 else float("nan")
+        return float(np.mean(a) - np.mean(b)), se
+
+    def word(d, se):  # "a is worse than b" at two standard errors, either way; one run decides nothing
+        if not math.isfinite(se):
+            return None
+        return True if d > 2 * se else (False if d < -2 * se else None)
+
+    d_soft, se_soft = worse(runs_of[(soft, "FoBG")], runs_of[(soft, "ZoBG")])
+    d_stiff, se_stiff = worse(runs_of[(stiff, "FoBG")], runs_of[(stiff, "ZoBG")])
+    trend, trend_se = d_stiff - d_soft, math.hypot(se_soft, se_stiff)
+    pf, pf_se = worse(pruns["FoBG"], pruns["ZoBG"])
+    pa, pa_se = worse(pmean["AoBG"], pmean["ZoBG"])
+    runs = f"final cost over {seeds} runs of {iterations} iterations (mean ± SE); a difference counts at 2 SE"
     verdicts = [
-        _verdict("trajectory optimisation: FoBG falls behind as the contact stiffens (000)", gap[(stiff, "FoBG")] > gap[(soft, "FoBG")],
-                 f"FoBG behind the best by {gap[(soft, 'FoBG')]:.3g} at k = {soft:g} and {gap[(stiff, 'FoBG')]:.3g} at k = {stiff:g}", runs),
-        _verdict("trajectory optimisation: ZoBG falls behind on the softer systems (000)", gap[(soft, "ZoBG")] > gap[(stiff, "ZoBG")],
-                 f"ZoBG behind the best by {gap[(soft, 'ZoBG')]:.3g} at k = {soft:g} and {gap[(stiff, 'ZoBG')]:.3g} at k = {stiff:g}", runs),
+        _verdict("trajectory optimisation: FoBG falls behind ZoBG as the contact stiffens (000)", word(trend, trend_se),
+                 f"FoBG − ZoBG: {d_soft:+.3g} ± {se_soft:.2g} at k = {soft:g}, {d_stiff:+.3g} ± {se_stiff:.2g} at k = {stiff:g}", runs),
+        _verdict("trajectory optimisation: ZoBG does worse than FoBG on the softest system (000)", word(-d_soft, se_soft),
+                 f"ZoBG − FoBG at k = {soft:g}: {-d_soft:+.3g} ± {se_soft:.2g}", runs),
         _verdict("trajectory optimisation: AoBG selects between the two, never far from the better (000)",
-                 all(gap[(k, "AoBG")] <= 0.1 * abs(min(final[(k, "FoBG")], final[(k, "ZoBG")])) for k in stiffness),
+                 all(final[(k, "AoBG")] <= min(final[(k, "FoBG")], final[(k, "ZoBG")])
+                     + 2 * math.sqrt(np.var(runs_of[(k, "AoBG")], ddof=1) / seeds) for k in stiffness) if seeds > 1 else None,
                  ", ".join(f"k = {k:g}: AoBG {final[(k, 'AoBG')]:.4g}, FoBG {final[(k, 'FoBG')]:.4g}, ZoBG {final[(k, 'ZoBG')]:.4g}"
-                           for k in stiffness), "AoBG's final cost within 10 % of the better of FoBG and ZoBG at every k"),
-        _verdict("policy optimisation: FoBG ends worse than ZoBG (000)", pfinal["FoBG"] > pfinal["ZoBG"],
-                 "final cost: " + ", ".join(f"{n} {v:.4g}" for n, v in pfinal.items()),
-                 f"mean final cost over {seeds} runs of {policy_iterations} iterations"),
-        _verdict("policy optimisation: AoBG descends faster than ZoBG (000)", _area(pol, "AoBG") < _area(pol, "ZoBG"),
-                 f"mean cost over the run: AoBG {_area(pol, 'AoBG'):.4g}, ZoBG {_area(pol, 'ZoBG'):.4g}, FoBG {_area(pol, 'FoBG'):.4g}",
-                 "the mean of the learning curve's evaluated points (lower: faster)"),
+                           for k in stiffness), "AoBG's mean final cost within 2 SE of the better of FoBG and ZoBG at every k"),
+        _verdict("policy optimisation: FoBG ends worse than ZoBG (000)", word(pf, pf_se),
+                 "final cost: " + ", ".join(f"{n} {float(np.mean(v)):.4g}" for n, v in pruns.items()) + f"; FoBG − ZoBG {pf:+.3g} ± {pf_se:.2g}",
+                 f"final cost over {seeds} runs of {policy_iterations} iterations; a difference counts at 2 SE"),
+        _verdict("policy optimisation: AoBG descends faster than ZoBG (000)", word(-pa, pa_se),
+                 f"mean cost along the run: AoBG − ZoBG {pa:+.3g} ± {pa_se:.2g} (AoBG {float(np.mean(pmean['AoBG'])):.4g}, "
+                 f"ZoBG {float(np.mean(pmean['ZoBG'])):.4g}, FoBG {float(np.mean(pmean['FoBG'])):.4g})",
+                 "the mean of each run's evaluated learning curve (lower: faster); a difference counts at 2 SE"),
     ]
     return StudyResult("scaling", dict(stiffness=list(stiffness), iterations=iterations, samples=samples, seeds=seeds,
                                        policy_iterations=policy_iterations, gamma=gamma, step=step,
