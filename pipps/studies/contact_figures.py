@@ -195,7 +195,7 @@ def pushing_figure(r: StudyResult) -> tuple:
                  ch.Axis("barrier weight κ", min(x["kappa"] for x in bar) / 1.5, max(x["kappa"] for x in bar) * 1.5, log=True),
                  ch.Axis("tr Var (per sample)", *ch.data_range([[x[n]["expected_variance"] for x in bar + imp] for n in ("FoBG", "ZoBG")], log=True), log=True), PANEL),
         ch.chart("contact/fig6", "(c) Fig. 6: x⁺ against the impulse u at (x, v) = 0", ch.Axis("impulse u", min(f6["u"]), max(f6["u"])),
-                 ch.Axis("x⁺", *ch.data_range([v for k, v in f6.items() if k != "u"])), PANEL),
+                 ch.Axis("x⁺", *ch.data_range([v for k, v in f6.items() if k.startswith(("implicit", "penalty", "barrier"))])), PANEL),
     ]
     kap = [k for k in f6 if k.startswith("barrier")]
     navy = (20, 40, 90)  # not an estimator's colour: these are contact models, not estimates
